@@ -1,0 +1,231 @@
+"""One dataclass tree for every setting of the pipeline.
+
+Defaults cite VGGT-SLAM (Maggio, Lim, Carlone, NeurIPS 2025), section 5.1 ("paper"), or the
+authors' code ("reference code"). The command line is generated from this tree
+(``sl4slam.cli``) and the same tree can be read from a TOML or JSON file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import UserError
+
+
+@dataclass
+class KeyframeConfig:
+    """Keyframe selection by Lucas-Kanade disparity (paper 4.1)."""
+
+    tau_disparity: float = 25.0
+    """Mean tracked displacement (px) that makes a keyframe. Paper: 25; reference code: 50."""
+    max_corners: int = 1000
+    """Shi-Tomasi corners detected on the last keyframe (reference code)."""
+    corner_quality: float = 0.01
+    """Shi-Tomasi quality level (reference code)."""
+    corner_min_distance: float = 8.0
+    """Minimum distance between corners in px (reference code)."""
+    lk_window: int = 21
+    """Lucas-Kanade window size in px (OpenCV default, used by the reference code)."""
+    lk_levels: int = 3
+    """Pyramid levels for Lucas-Kanade (reference code)."""
+    min_tracked: int = 10
+    """A frame with fewer successfully tracked corners is always a keyframe."""
+
+
+@dataclass
+class SubmapConfig:
+    """Submap assembly (paper 4.1, 5.1)."""
+
+    size: int = 16
+    """New keyframes per submap, w. Paper evaluates 8/16/32 (tables use 32); reference CLI: 16."""
+    w_loop: int = 1
+    """Loop frames appended to a submap (paper: 1)."""
+    tau_conf: float = 25.0
+    """Percentile of the submap's confidence below which pixels are dropped (reference code: 25)."""
+    use_point_head: bool = False
+    """Use the frontend's point map instead of unprojecting depth (VGGT offers both)."""
+
+
+@dataclass
+class AlignmentConfig:
+    """Relative alignment of consecutive submaps (paper 4.2)."""
+
+    ransac_iterations: int = 300
+    """RANSAC hypotheses (paper: 300)."""
+    inlier_threshold: float = 0.01
+    """Inlier distance in submap units (paper: 0.01)."""
+    max_points: int = 20000
+    """Correspondences scored per hypothesis; larger sets are subsampled (seeded)."""
+    min_inliers: int = 50
+    """Fewer inliers than this makes the 15-DOF fit degenerate: fall back to Sim(3)."""
+    planarity_threshold: float = 0.02
+    """Smallest/largest singular value of centred inlier points below which they count as
+    coplanar, so the projective fit is degenerate: fall back to Sim(3)."""
+    refit: bool = True
+    """Least-squares refit of H on all inliers, then re-score (the reference code does not)."""
+    seed: int = 0
+    """Seed of the RANSAC sampler (combined with the submap id)."""
+
+
+@dataclass
+class BackendConfig:
+    """Factor graph over submap transforms (paper 4.4)."""
+
+    kind: str = "sl4"
+    """"sl4" (15-DOF projective, the paper) or "sim3" (7-DOF similarity, for comparison)."""
+    sigma: float = 0.05
+    """Isotropic sigma of between factors (reference code: 0.05)."""
+    prior_sigma: float = 1e-6
+    """Sigma of the prior on the first submap (reference code: 1e-6)."""
+    loop_kernel: str = "none"
+    """Robust kernel on loop factors: "none", "huber" or "cauchy"."""
+    loop_kernel_width: float = 1.0
+    """Width of the robust kernel, in whitened residual units."""
+
+
+@dataclass
+class RetrievalConfig:
+    """Loop-closure retrieval (paper 4.3)."""
+
+    kind: str = "orb"
+    """"orb" (weights-free, CPU), "salad" (paper) or "none"."""
+    tau_interval: int = 2
+    """Most recent submaps excluded from retrieval (paper: 2)."""
+    tau_desc: float = 0.8
+    """SALAD: accept when the L2 descriptor distance is below this (paper: 0.8)."""
+    salad_weights: str | None = None
+    """Path to ``dino_salad.ckpt``; ``None`` uses the user cache (downloaded on first use)."""
+    salad_image_size: int = 224
+    """SALAD input size in px (reference SLAM code: 224; SALAD's evaluation: 322)."""
+    orb_features: int = 1000
+    """ORB: features per keyframe."""
+    orb_min_inliers: int = 40
+    """ORB: geometrically verified matches (fundamental-matrix RANSAC inliers) to accept a loop."""
+    orb_candidates: int = 5
+    """ORB: candidates, ranked by bag-of-words similarity, that are geometrically verified."""
+
+
+@dataclass
+class SimulatorConfig:
+    """Corruption model of the simulated frontend (see ``sl4slam.frontend.simulated``)."""
+
+    perspective: float = 0.0
+    """Magnitude of the perspective row of the per-submap distortion H_s (what Sim(3) cannot model)."""
+    shear: float = 0.0
+    """Magnitude of the shear / anisotropic-stretch part of H_s."""
+    scale: float = 0.0
+    """Log-scale spread of the per-submap global scale of H_s."""
+    depth_noise: float = 0.002
+    """Relative depth noise sigma (noise = sigma * depth)."""
+    outlier_fraction: float = 0.02
+    """Fraction of pixels in outlier blobs."""
+    outlier_blob_px: float = 12.0
+    """Typical outlier blob radius in px."""
+    outlier_magnitude: float = 0.3
+    """Relative depth error inside outlier blobs."""
+    seed: int = 0
+    """Seed; noise is drawn from (seed, submap id, frame index)."""
+
+
+@dataclass
+class VGGTConfig:
+    """VGGT frontend."""
+
+    weights: str = "facebook/VGGT-1B"
+    """Local ``.pt`` / ``.safetensors`` file or Hugging Face hub id (model.pt)."""
+    device: str = "auto"
+    """"auto" (CUDA when available), "cpu" or "cuda"."""
+    dtype: str = "auto"
+    """"auto" (bf16 on GPUs that support it, else fp16; fp32 on CPU), "fp32", "bf16", "fp16"."""
+    preprocess_mode: str = "crop"
+    """VGGT preprocessing: "crop" (width 518) or "pad" (square 518)."""
+
+
+@dataclass
+class OutputConfig:
+    """What a run writes."""
+
+    voxel_size: float = 0.0
+    """Voxel downsampling of ``map.ply`` in world units (0: off)."""
+    max_map_points: int = 2_000_000
+    """Cap on points written to ``map.ply`` (evenly subsampled, seeded)."""
+    save_keyframe_points: bool = True
+    """Write per-keyframe world points and masks for dense evaluation."""
+    cache_frontend: bool = False
+    """Store the frontend's outputs so the backend can be re-run without the model."""
+
+
+@dataclass
+class SLAMConfig:
+    """Everything a run needs."""
+
+    frontend: str = "vggt"
+    """"vggt" or "simulated"."""
+    max_frames: int = 0
+    """Stop after this many input frames (0: all)."""
+    stride: int = 1
+    """Use every n-th input frame."""
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    submap: SubmapConfig = field(default_factory=SubmapConfig)
+    alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+    sim: SimulatorConfig = field(default_factory=SimulatorConfig)
+    vggt: VGGTConfig = field(default_factory=VGGTConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+
+
+def config_to_dict(config: Any) -> dict:
+    """A plain, JSON-serialisable dict of a config tree."""
+    return dataclasses.asdict(config)
+
+
+def _apply(target: Any, values: dict, where: str) -> None:
+    names = {f.name: f for f in dataclasses.fields(target)}
+    for key, value in values.items():
+        if key not in names:
+            raise UserError(f"unknown setting '{where}{key}' in config file; valid: {', '.join(sorted(names))}")
+        current = getattr(target, key)
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, dict):
+                raise UserError(f"setting '{where}{key}' must be a table/object of settings")
+            _apply(current, value, f"{where}{key}.")
+        else:
+            if current is not None and value is not None and not isinstance(value, type(current)):
+                if isinstance(current, float) and isinstance(value, int):
+                    value = float(value)
+                else:
+                    raise UserError(
+                        f"setting '{where}{key}' must be {type(current).__name__}, got {value!r}"
+                    )
+            setattr(target, key, value)
+
+
+def config_from_dict(values: dict, base: SLAMConfig | None = None) -> SLAMConfig:
+    """Overlay ``values`` (nested dict) on ``base`` (default: the defaults)."""
+    config = base if base is not None else SLAMConfig()
+    _apply(config, values, "")
+    return config
+
+
+def load_config(path: str | Path, base: SLAMConfig | None = None) -> SLAMConfig:
+    """Read a TOML (``.toml``) or JSON file of settings over the defaults."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"config file not found: {path}")
+    try:
+        if path.suffix.lower() == ".toml":
+            try:
+                import tomllib
+            except ModuleNotFoundError:  # Python 3.10
+                import tomli as tomllib  # type: ignore[no-redef]
+            values = tomllib.loads(path.read_text())
+        else:
+            values = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise UserError(f"cannot parse config file {path}: {exc}") from None
+    return config_from_dict(values, base)

@@ -1,0 +1,18 @@
+"""Shared test fixtures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+# The project's reference data (model fixtures, a real TUM excerpt) sits beside the repository.
+SHARED_DIR = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+@pytest.fixture(scope="session")
+def shared_dir() -> Path:
+    """The ``shared/`` folder next to the repository; skips the test when it is absent."""
+    if not SHARED_DIR.is_dir():
+        pytest.skip(f"reference data folder {SHARED_DIR} is absent (only a development checkout has it)")
+    return SHARED_DIR
