@@ -107,28 +107,52 @@ class RetrievalConfig:
     """ORB: geometrically verified matches (fundamental-matrix RANSAC inliers) to accept a loop."""
     orb_candidates: int = 5
     """ORB: candidates, ranked by bag-of-words similarity, that are geometrically verified."""
+    min_loop_inlier_ratio: float = 0.3
+    """A retrieved loop is added to the graph only if its alignment keeps this inlier fraction
+    (and needed no fallback): one false loop bends the whole map."""
 
 
 @dataclass
 class SimulatorConfig:
-    """Corruption model of the simulated frontend (see ``sl4slam.frontend.simulated``)."""
+    """Corruption model of the simulated frontend (``sl4slam.frontend.simulated`` documents it in full).
+
+    Every submap gets its own projective distortion ``H_s`` in SL(4); every frame of every submap
+    gets its own depth noise, outlier blobs and confidence. All of it is drawn from ``seed``, the
+    submap id and the frame indices, so a run is exactly reproducible.
+    """
 
     perspective: float = 0.0
-    """Magnitude of the perspective row of the per-submap distortion H_s (what Sim(3) cannot model)."""
+    """Norm of the perspective row ``p`` of ``H_s`` (what Sim(3) cannot model), in units of
+    1 / (the submap's mean point distance): a point at the mean distance has its homogeneous
+    weight changed by up to this fraction. 0: none."""
     shear: float = 0.0
-    """Magnitude of the shear / anisotropic-stretch part of H_s."""
+    """Spread of the shear / anisotropic stretch ``B`` of ``H_s`` (upper triangular, det 1):
+    off-diagonal entries ~ N(0, shear^2), log stretches ~ N(0, shear^2) minus their mean. 0: none."""
     scale: float = 0.0
-    """Log-scale spread of the per-submap global scale of H_s."""
+    """Standard deviation of the log of the per-submap global scale of ``H_s``. 0: none."""
+    normalize_scale: bool = True
+    """Scale each submap so the mean distance of its valid true points to the first camera is 1,
+    as VGGT normalizes its outputs; off: submaps keep metric units (before ``scale``)."""
     depth_noise: float = 0.002
-    """Relative depth noise sigma (noise = sigma * depth)."""
+    """Relative depth noise sigma: depth is multiplied by ``exp(depth_noise * n)``, n ~ N(0, 1)
+    per pixel, so the error grows with depth."""
     outlier_fraction: float = 0.02
-    """Fraction of pixels in outlier blobs."""
+    """Fraction of each frame's pixels inside outlier blobs (spatially coherent errors)."""
     outlier_blob_px: float = 12.0
-    """Typical outlier blob radius in px."""
+    """Typical outlier blob radius in px (correlation length of the blob field)."""
     outlier_magnitude: float = 0.3
-    """Relative depth error inside outlier blobs."""
+    """Relative depth error inside outlier blobs: depth is multiplied by ``(1 + m)^s`` with
+    ``m`` this value and ``s`` in (-1, 1) a smooth field, mostly near -1 or +1."""
+    confidence_scale: float = 5.0
+    """Confidence of a clean pixel at the submap's median depth is about ``1 + confidence_scale``;
+    it falls inversely with depth (VGGT's confidence is ``1 + exp(x)`` >= 1)."""
+    confidence_jitter: float = 0.2
+    """Log-normal spread of the confidence of clean pixels (so it is not a function of depth alone)."""
+    outlier_confidence: float = 0.02
+    """Factor on the confidence excess (confidence - 1) inside outlier blobs; pixels with no
+    measured depth (filled from their nearest neighbour) get confidence exactly 1."""
     seed: int = 0
-    """Seed; noise is drawn from (seed, submap id, frame index)."""
+    """Seed (>= 0); ``H_s`` is drawn from (seed, submap id), noise from (seed, submap id, frame index)."""
 
 
 @dataclass

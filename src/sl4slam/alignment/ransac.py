@@ -1,0 +1,385 @@
+"""Robust relative alignment of two submaps from one frame's points (paper 4.2).
+
+``estimate_sl4`` fits the 15-DOF projective map ``H_a_b`` (``X_a ~ H_a_b X_b``) with RANSAC over
+5-point DLT samples; ``estimate_sim3`` fits a 7-DOF similarity with RANSAC over 3-point Umeyama
+samples. Both share the machinery below:
+
+1. Hypotheses are built in one batch (``num_samples x sample_size`` indices drawn from the seeded
+   generator, one batched solver call); degenerate samples are discarded, never replaced.
+2. Hypotheses are scored in batch with the MSAC cost (truncated squared transfer error) of
+   ``|X_a - H X_b|`` after homogeneous division, in ``X_a``'s units; points that ``H`` maps to
+   ``w <= 0`` (behind the plane sent to infinity) are outliers. Scoring uses a seeded random
+   subset of at most ``config.max_points`` correspondences, preceded by a preemptive round on a
+   small subset that keeps only the best hypotheses (Nister's preemptive RANSAC idea).
+3. The best hypothesis is refitted by least squares on all its inliers and re-scored on all
+   correspondences, for a few rounds while the cost decreases.
+
+When the projective fit is degenerate (too few correspondences or inliers, nearly coplanar points,
+every sample degenerate) ``estimate_sl4`` falls back to the Sim(3) model on the same points and
+says so in ``Alignment.fallback``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+
+from ..config import AlignmentConfig
+from ..geometry import normalize_sl4, umeyama_sim3
+from ..types import Alignment
+from .dlt import dlt_sl4, minimal_sl4_batch, normalize_points
+from .sim3 import umeyama_sim3_batch
+
+PREEMPTIVE_POINTS = 1024
+"""Correspondences of the preemptive scoring round (every valid hypothesis is scored on them)."""
+PREEMPTIVE_KEEP = 0.1
+"""Fraction of hypotheses (at least ``PREEMPTIVE_MIN_KEEP``) scored on the full subset."""
+PREEMPTIVE_MIN_KEEP = 8
+REFIT_ROUNDS = 10
+"""Most refit / re-score rounds after RANSAC; they stop once the inlier set stops changing or
+the cost stops decreasing (typically after 2-4 rounds)."""
+SCORE_BLOCK = 1 << 21
+"""Hypothesis x point entries scored at once (bounds the temporary memory to ~100 MB)."""
+SMALL_SET = 4096
+"""Up to this many points, samples are drawn without repetition by permuting all indices."""
+
+Solver = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+# --------------------------------------------------------------------------------------------
+# Shared machinery
+
+
+def clean_correspondences(X_a: np.ndarray, X_b: np.ndarray, minimum: int, model: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Drop rows with NaN/Inf in either set.
+
+    Args:
+        X_a, X_b: ``(N, 3)`` corresponding points.
+        minimum: fewest finite correspondences the model can use.
+        model: model name for the error message.
+
+    Returns:
+        ``(X_a, X_b)`` finite rows as float64 and the ``(N,)`` bool mask of kept rows.
+
+    Raises:
+        ValueError: shapes disagree, or fewer than ``minimum`` finite rows remain.
+    """
+    X_a = np.asarray(X_a, dtype=np.float64)
+    X_b = np.asarray(X_b, dtype=np.float64)
+    if X_a.shape != X_b.shape or X_a.ndim != 2 or X_a.shape[1] != 3:
+        raise ValueError(f"{model} alignment needs two (N, 3) point arrays of equal shape, got {X_a.shape} and {X_b.shape}")
+    finite = np.isfinite(X_a).all(axis=1) & np.isfinite(X_b).all(axis=1)
+    count = int(finite.sum())
+    if count < minimum:
+        raise ValueError(
+            f"{model} alignment needs at least {minimum} finite correspondences, got {count} of {len(X_a)}; "
+            "the shared frame has too few confident points"
+        )
+    return X_a[finite], X_b[finite], finite
+
+
+def transfer_errors(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Squared transfer errors ``|X_a - H X_b|^2`` for a batch of hypotheses.
+
+    Args:
+        H: ``(M, 4, 4)`` hypotheses with the sign convention ``w > 0`` for points in front.
+        X_a, X_b: ``(n, 3)`` correspondences; their dtype (float32 or float64) is used throughout.
+
+    Returns:
+        r2: ``(M, n)`` squared distances in ``X_a``'s units (after homogeneous division).
+        in_front: ``(M, n)`` bool, ``w > 0``.
+    """
+    M, n = len(H), len(X_b)
+    dtype = X_b.dtype
+    # One (4M, 3) x (3, n) product maps every point through every hypothesis.
+    mapped = (H[:, :, :3].reshape(4 * M, 3).astype(dtype) @ X_b.T).reshape(M, 4, n)
+    mapped += H[:, :, 3].astype(dtype)[:, :, None]
+    w = mapped[:, 3]
+    in_front = w > 0
+    inv_w = 1.0 / np.where(in_front, w, 1.0)
+    r2 = np.zeros((M, n), dtype=dtype)
+    for axis in range(3):  # x, y, z components, each vectorized over hypotheses and points
+        d = mapped[:, axis] * inv_w
+        d -= X_a[:, axis]
+        d *= d
+        r2 += d
+    return r2, in_front
+
+
+def msac_costs(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray, threshold: float) -> np.ndarray:
+    """MSAC cost ``sum min(r^2, t^2)`` per hypothesis ``(M,)`` (points with ``w <= 0`` cost ``t^2``)."""
+    thr2 = threshold**2
+    block = max(1, SCORE_BLOCK // max(len(X_a), 1))
+    costs = np.empty(len(H))
+    for start in range(0, len(H), block):  # blocks of hypotheses bound the temporary memory
+        r2, in_front = transfer_errors(H[start : start + block], X_a, X_b)
+        costs[start : start + block] = np.where(in_front & (r2 < thr2), r2, thr2).sum(axis=1)
+    return costs
+
+
+def score_one(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray, threshold: float) -> tuple[float, np.ndarray, np.ndarray]:
+    """One hypothesis on all points: ``(msac_cost, inliers (n,), squared_errors (n,))``."""
+    r2, in_front = transfer_errors(H[None], X_a, X_b)
+    r2, in_front = r2[0], in_front[0]
+    thr2 = threshold**2
+    inliers = in_front & (r2 < thr2)
+    return float(np.where(inliers, r2, thr2).sum()), inliers, r2
+
+
+def draw_samples(num_points: int, sample_size: int, num_samples: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Index samples ``(num_samples, sample_size)`` and a mask of samples without repeated indices."""
+    if num_points <= SMALL_SET:
+        order = rng.permuted(np.broadcast_to(np.arange(num_points), (num_samples, num_points)), axis=1)
+        return order[:, :sample_size], np.ones(num_samples, dtype=bool)
+    samples = rng.integers(0, num_points, size=(num_samples, sample_size))
+    ordered = np.sort(samples, axis=1)
+    return samples, (np.diff(ordered, axis=1) > 0).all(axis=1)
+
+
+def ransac_best(
+    X_a: np.ndarray,
+    X_b: np.ndarray,
+    solver: Solver,
+    sample_size: int,
+    threshold: float,
+    config: AlignmentConfig,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray | None, dict]:
+    """Batched hypothesize-and-score; returns the lowest-cost hypothesis (or None) and statistics.
+
+    Args:
+        X_a, X_b: ``(N, 3)`` finite correspondences (in whatever frame the solver expects).
+        solver: ``(M, k, 3), (M, k, 3) -> (H (M, 4, 4), valid (M,))``, fitting ``X_a ~ H X_b``.
+        sample_size: ``k``.
+        threshold: inlier distance in ``X_a``'s units.
+    """
+    N = len(X_a)
+    samples, distinct = draw_samples(N, sample_size, config.ransac_iterations, rng)
+    H, valid = solver(X_a[samples], X_b[samples])
+    valid &= distinct
+    stats = {"hypotheses": int(len(H)), "degenerate_samples": int((~valid).sum())}
+    if not valid.any():
+        return None, stats
+    H = H[valid]
+    scored = rng.permutation(N)[: config.max_points]
+    # Ranking hypotheses needs far less precision than float64 (errors ~1e-7 vs a 1e-2 threshold).
+    X_a, X_b = X_a.astype(np.float32), X_b.astype(np.float32)
+    stats["scored_points"] = int(len(scored))
+    keep = max(PREEMPTIVE_MIN_KEEP, int(np.ceil(PREEMPTIVE_KEEP * len(H))))
+    if len(H) > keep and len(scored) > 2 * PREEMPTIVE_POINTS:
+        first = scored[:PREEMPTIVE_POINTS]
+        costs = msac_costs(H, X_a[first], X_b[first], threshold)
+        H = H[np.argpartition(costs, keep - 1)[:keep]]
+    stats["fully_scored_hypotheses"] = int(len(H))
+    costs = msac_costs(H, X_a[scored], X_b[scored], threshold)
+    return H[int(np.argmin(costs))], stats
+
+
+def refine(
+    H: np.ndarray,
+    X_a: np.ndarray,
+    X_b: np.ndarray,
+    threshold: float,
+    fit: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+    min_points: int,
+) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, int]:
+    """Least-squares refit on all inliers, re-score on all points, repeat while the inlier set
+    changes and the cost drops.
+
+    Args:
+        H: ``(4, 4)`` starting hypothesis (``X_a ~ H X_b``).
+        fit: ``(X_a_inliers, X_b_inliers, H_current) -> H_new``; may raise ``ValueError``.
+        min_points: fewest inliers the fit accepts.
+
+    Returns:
+        ``(H, cost, inliers (N,), squared_errors (N,), accepted_refits)``.
+    """
+    cost, inliers, r2 = score_one(H, X_a, X_b, threshold)
+    accepted = 0
+    for _ in range(REFIT_ROUNDS):
+        if inliers.sum() < min_points:
+            break
+        try:
+            H_new = fit(X_a[inliers], X_b[inliers], H)
+        except ValueError:  # degenerate least-squares fit: keep the current estimate
+            break
+        cost_new, inliers_new, r2_new = score_one(H_new, X_a, X_b, threshold)
+        if not cost_new < cost:
+            break
+        settled = np.array_equal(inliers_new, inliers)
+        H, cost, inliers, r2 = H_new, cost_new, inliers_new, r2_new
+        accepted += 1
+        if settled:  # same inlier set: another refit would only nudge the 1/w^2 weights
+            break
+    return H, cost, inliers, r2, accepted
+
+
+def planarity(X: np.ndarray, max_points: int = 20000) -> float:
+    """Thickness / extent of points ``(N, 3)``: 0 for coplanar points, ~1 for a round blob.
+
+    The ratio of the smallest to the largest singular value of the centred points, measured
+    robustly: spreads along the principal axes are interdecile ranges, so a handful of off-plane
+    points (which alone make a plane look three-dimensional to a plain SVD, yet leave the 15-DOF
+    fit degenerate) do not count. Uses an evenly strided subset of at most ``max_points`` rows.
+    """
+    X = X[:: max(1, len(X) // max_points)]
+    centred = X - X.mean(axis=0)
+    _, axes = np.linalg.eigh(centred.T @ centred)  # columns sorted by increasing variance
+    along = centred @ axes[:, [0, 2]]
+    low, high = np.quantile(along, [0.1, 0.9], axis=0)
+    spread = high - low
+    return float(spread[0] / spread[1]) if spread[1] > 0 else 0.0
+
+
+def _rms(r2: np.ndarray, inliers: np.ndarray) -> float:
+    """RMS of the inliers' errors; of all errors when there is no inlier (the ratio says why)."""
+    values = r2[inliers] if inliers.any() else r2
+    return float(np.sqrt(values.mean())) if len(values) else 0.0
+
+
+def _full_mask(finite: np.ndarray, inliers: np.ndarray) -> np.ndarray:
+    mask = np.zeros(len(finite), dtype=bool)
+    mask[np.flatnonzero(finite)] = inliers
+    return mask
+
+
+def _rng(config: AlignmentConfig, seed: int) -> np.random.Generator:
+    # The configured seed and the caller's seed (e.g. the submap id) both select the stream.
+    return np.random.default_rng([int(config.seed), int(seed)])
+
+
+# --------------------------------------------------------------------------------------------
+# Sim(3)
+
+
+def _fit_sim3(X_a: np.ndarray, X_b: np.ndarray, _H: np.ndarray) -> np.ndarray:
+    return umeyama_sim3(X_b, X_a)
+
+
+def estimate_sim3(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, seed: int = 0) -> Alignment:
+    """Robust similarity ``T_a_b = [s R t; 0 1]`` with ``X_a ~ T_a_b X_b``: RANSAC + Umeyama.
+
+    Args:
+        X_a: ``(N, 3)`` points in submap ``a``; rows with NaN/Inf (in either set) are ignored.
+        X_b: ``(N, 3)`` the same points in submap ``b``.
+        config: iterations, inlier threshold (``X_a`` units), scoring subset size, seed.
+        seed: combined with ``config.seed`` (e.g. the submap id).
+
+    Returns:
+        ``Alignment`` with ``model="sim3"``; ``inliers`` covers all N input rows.
+
+    Raises:
+        ValueError: fewer than 3 finite correspondences, or every sample collinear.
+    """
+    start = time.perf_counter()
+    X_a, X_b, finite = clean_correspondences(X_a, X_b, 3, "Sim(3)")
+    rng = _rng(config, seed)
+    threshold = float(config.inlier_threshold)
+    H, stats = ransac_best(X_a, X_b, umeyama_sim3_batch, 3, threshold, config, rng)
+    if H is None:
+        raise ValueError("Sim(3) alignment failed: every 3-point sample is collinear; the shared frame's points are degenerate")
+    H, _, inliers, r2, refits = refine(H, X_a, X_b, threshold, _fit_sim3, 3)
+    stats.update(refits=refits, dropped_nonfinite=int(len(finite) - finite.sum()), seconds=time.perf_counter() - start)
+    return Alignment(
+        H=H,
+        inliers=_full_mask(finite, inliers),
+        inlier_ratio=float(inliers.sum() / len(finite)),
+        rms=_rms(r2, inliers),
+        model="sim3",
+        fallback=None,
+        extras=stats,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# SL(4)
+
+
+def _fit_sl4(X_a: np.ndarray, X_b: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """Weighted DLT refit: weights ``1 / w^2`` (``w`` from the current ``H``) turn the algebraic
+    error into the transfer error in ``X_a``; repeated refits in :func:`refine` iterate the weights.
+    """
+    w = X_b @ H[3, :3] + H[3, 3]
+    return dlt_sl4(X_a, X_b, weights=1.0 / np.maximum(w, 1e-12) ** 2)
+
+
+def estimate_sl4(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, seed: int = 0) -> Alignment:
+    """Robust projective map ``H_a_b`` in SL(4) with ``X_a ~ H_a_b X_b`` (5-point DLT in RANSAC).
+
+    Both point sets are Hartley-normalized for sampling and scoring; the threshold is converted
+    so that it stays ``config.inlier_threshold`` in ``X_a``'s units. The best hypothesis is refitted
+    on all its inliers (weighted DLT, when ``config.refit``) and re-scored on all points.
+
+    Falls back to :func:`estimate_sim3` on the same points (``model="sim3"``, ``fallback`` says
+    why) when the 15-DOF fit is degenerate: fewer than ``config.min_inliers`` correspondences or
+    inliers, points or inliers nearly coplanar (``planarity < config.planarity_threshold``), or
+    every 5-point sample degenerate.
+
+    Args:
+        X_a: ``(N, 3)`` points of the shared frame in submap ``a``; NaN/Inf rows are ignored.
+        X_b: ``(N, 3)`` the same pixels' points in submap ``b``.
+        config: alignment settings.
+        seed: combined with ``config.seed`` (e.g. the submap id) to seed the sampler.
+
+    Returns:
+        ``Alignment``: ``H`` ``(4, 4)`` with det = +1 and ``w > 0`` on the inliers, ``inliers``
+        ``(N,)``, inlier ratio, inlier RMS in ``X_a`` units; ``extras`` holds the statistics.
+
+    Raises:
+        ValueError: fewer than 5 finite correspondences.
+    """
+    start = time.perf_counter()
+    X_a_in, X_b_in = X_a, X_b
+    X_a, X_b, finite = clean_correspondences(X_a, X_b, 5, "SL(4)")
+    stats: dict = {"dropped_nonfinite": int(len(finite) - finite.sum())}
+
+    def fallback(reason: str) -> Alignment:
+        result = estimate_sim3(X_a_in, X_b_in, config, seed)
+        result.fallback = reason
+        result.extras = {**result.extras, "sl4": stats}
+        return result
+
+    N = len(X_a)
+    if N < config.min_inliers:
+        return fallback(f"only {N} correspondences (< min_inliers {config.min_inliers})")
+    flatness = planarity(X_b, config.max_points)
+    stats["planarity"] = flatness
+    if flatness < config.planarity_threshold:
+        return fallback(f"points nearly coplanar (planarity {flatness:.3g} < {config.planarity_threshold})")
+
+    rng = _rng(config, seed)
+    X_a_n, T_a = normalize_points(X_a)
+    X_b_n, T_b = normalize_points(X_b)
+    threshold = float(config.inlier_threshold)
+    H_n, ransac_stats = ransac_best(X_a_n, X_b_n, minimal_sl4_batch, 5, threshold * T_a[0, 0], config, rng)
+    stats.update(ransac_stats)
+    if H_n is None:
+        return fallback("every 5-point sample degenerate")
+    H = normalize_sl4(np.linalg.solve(T_a, H_n @ T_b))  # back to submap units: T_a^-1 H_n T_b
+
+    fit = _fit_sl4 if config.refit else None
+    if fit is not None:
+        H, _, inliers, r2, refits = refine(H, X_a, X_b, threshold, fit, max(config.min_inliers, 5))
+    else:
+        _, inliers, r2 = score_one(H, X_a, X_b, threshold)
+        refits = 0
+    count = int(inliers.sum())
+    stats.update(refits=refits, inliers=count)
+    if count < config.min_inliers:
+        return fallback(f"{count} inliers (< min_inliers {config.min_inliers})")
+    inlier_flatness = planarity(X_b[inliers], config.max_points)
+    stats["inlier_planarity"] = inlier_flatness
+    if inlier_flatness < config.planarity_threshold:
+        return fallback(f"inliers nearly coplanar (planarity {inlier_flatness:.3g} < {config.planarity_threshold})")
+    stats["seconds"] = time.perf_counter() - start
+    return Alignment(
+        H=H,
+        inliers=_full_mask(finite, inliers),
+        inlier_ratio=float(count / len(finite)),
+        rms=_rms(r2, inliers),
+        model="sl4",
+        fallback=None,
+        extras=stats,
+    )

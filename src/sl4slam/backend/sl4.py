@@ -1,0 +1,51 @@
+"""SL(4) backend: 15-DOF projective submap transforms, the paper's factor graph (section 4.4)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from ..geometry import normalize_sl4
+from .base import FactorGraphBackend, check_matrix
+
+
+class SL4Backend(FactorGraphBackend):
+    """Nodes and factors in ``gtsam.SL4``; inputs are any 4x4 with det > 0 (scaled to det = 1).
+
+    ``gtsam.SL4`` rescales its input by ``det^(1/4)`` and, for ``det <= 0``, silently flips a
+    singular vector, which changes the projective map. Every matrix is therefore normalized here
+    with :func:`normalize_sl4`, which refuses ``det <= 0``, before GTSAM sees it.
+    """
+
+    kind = "sl4"
+    dim = 15
+
+    def _check(self, name: str, M: np.ndarray) -> np.ndarray:
+        M = check_matrix(name, M)
+        try:
+            return normalize_sl4(M)
+        except ValueError as exc:
+            raise ValueError(f"{name}: {exc}") from None
+
+    def _inverse(self, M: np.ndarray) -> np.ndarray:
+        return normalize_sl4(np.linalg.inv(M))
+
+    def _to_gtsam(self, M: np.ndarray) -> gtsam.SL4:
+        return gtsam.SL4(M)
+
+    def _from_gtsam(self, element: gtsam.SL4) -> np.ndarray:
+        return normalize_sl4(np.array(element.matrix(), dtype=np.float64))
+
+    def _at(self, values: gtsam.Values, key: int) -> gtsam.SL4:
+        return values.atSL4(key)
+
+    def _estimate_one(self, key: int) -> gtsam.SL4:
+        return self._isam.calculateEstimateSL4(key)
+
+    def _between_factor(self, key_a: int, key_b: int, Z_a_b: gtsam.SL4, noise: Any) -> gtsam.BetweenFactorSL4:
+        return gtsam.BetweenFactorSL4(key_a, key_b, Z_a_b, noise)
+
+    def _prior_factor(self, key: int, Z: gtsam.SL4, noise: Any) -> gtsam.PriorFactorSL4:
+        return gtsam.PriorFactorSL4(key, Z, noise)

@@ -1,0 +1,219 @@
+"""Command-line interface: a thin layer over the library.
+
+``sl4slam run SOURCE --out DIR`` runs the pipeline; ``sl4slam demo`` the synthetic SL(4)-vs-Sim(3)
+comparison; ``sl4slam synth`` writes the synthetic world; ``sl4slam convert`` converts VGGT weights;
+``sl4slam ate`` evaluates a trajectory. Run flags are generated from the config dataclasses
+(``sl4slam.config``), so every setting, its default and its documentation live in one place.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import inspect
+import logging
+import sys
+import textwrap
+from pathlib import Path
+from typing import Any, Sequence
+
+from . import __version__
+from .config import SLAMConfig, load_config
+from .errors import UserError
+
+log = logging.getLogger("sl4slam")
+
+# Flag prefix per config section; a field named "kind" becomes the section's own flag
+# (``--backend sl4``, ``--retrieval orb``).
+SECTION_PREFIX = {
+    "keyframes": "",
+    "submap": "submap-",
+    "alignment": "ransac-",
+    "backend": "backend-",
+    "retrieval": "",
+    "sim": "sim-",
+    "vggt": "",
+    "output": "",
+}
+# Short aliases for the paper's thresholds.
+ALIASES = {("submap", "tau_conf"): "--tau-conf", ("submap", "w_loop"): "--w-loop"}
+CHOICES = {
+    ("", "frontend"): ["vggt", "simulated"],
+    ("backend", "kind"): ["sl4", "sim3"],
+    ("retrieval", "kind"): ["orb", "salad", "none"],
+    ("backend", "loop_kernel"): ["none", "huber", "cauchy"],
+    ("vggt", "preprocess_mode"): ["crop", "pad"],
+}
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """Attribute docstrings (the string literal after each field) of a dataclass."""
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    except (OSError, TypeError):
+        return {}
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    docs = {}
+    for node, following in zip(body, body[1:]):
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            if isinstance(following, ast.Expr) and isinstance(following.value, ast.Constant) and isinstance(following.value.value, str):
+                docs[node.target.id] = " ".join(following.value.value.split())
+    return docs
+
+
+def _scalar_type(value: Any):
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return int
+    if isinstance(value, float):
+        return float
+    return str
+
+
+def add_config_flags(parser: argparse.ArgumentParser, config: Any = None, section: str = "") -> None:
+    """Add one flag per config field; values land in ``args`` as ``section.field`` destinations."""
+    config = config if config is not None else SLAMConfig()
+    docs = field_docs(type(config))
+    group = parser.add_argument_group(f"{section} settings" if section else "run settings")
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            add_config_flags(parser, value, f.name)
+            continue
+        prefix = SECTION_PREFIX.get(section, "")
+        name = f.name.replace("_", "-")
+        flag = f"--{section}" if f.name == "kind" else "--" + (name if name.startswith(prefix) else prefix + name)
+        names = [flag] + ([ALIASES[(section, f.name)]] if (section, f.name) in ALIASES else [])
+        dest = f"{section}.{f.name}" if section else f.name
+        help_text = (docs.get(f.name, "") + f" (default: {value})").strip()
+        kwargs: dict[str, Any] = {"dest": dest, "default": argparse.SUPPRESS, "help": help_text}
+        if isinstance(value, bool):
+            kwargs["action"] = argparse.BooleanOptionalAction
+        else:
+            kwargs["type"] = _scalar_type(value)
+            kwargs["metavar"] = f.name.upper() if (section, f.name) not in CHOICES else None
+            if (section, f.name) in CHOICES:
+                kwargs["choices"] = CHOICES[(section, f.name)]
+        group.add_argument(*names, **kwargs)
+
+
+def config_from_args(args: argparse.Namespace) -> SLAMConfig:
+    """Defaults, then ``--config FILE``, then explicit flags."""
+    config = load_config(args.config) if getattr(args, "config", None) else SLAMConfig()
+    for dest, value in vars(args).items():
+        if "." in dest:
+            section, name = dest.split(".", 1)
+            setattr(getattr(config, section), name, value)
+        elif dest in {f.name for f in dataclasses.fields(SLAMConfig)}:
+            setattr(config, dest, value)
+    return config
+
+
+# ---------------------------------------------------------------------- verbs
+def cmd_run(args: argparse.Namespace) -> int:
+    from .runner import run_slam
+
+    config = config_from_args(args)
+    summary = run_slam(args.source, args.out, config, replay_dir=args.replay, progress=not args.quiet)
+    return 0 if summary else 1
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    run_demo(Path(args.out), frames=args.frames, perspective=args.perspective, progress=not args.quiet)
+    return 0
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    from .synthetic import write_synthetic_sequence
+
+    path = write_synthetic_sequence(args.out, num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
+    print(f"wrote {args.frames} frames to {path} (contact sheet: {Path(path) / 'contact_sheet.png'})")
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from .models.vggt.weights import convert_checkpoint
+
+    convert_checkpoint(args.src, args.dst, dtype="bf16" if args.bf16 else "fp32")
+    print(f"wrote {args.dst}")
+    return 0
+
+
+def cmd_ate(args: argparse.Namespace) -> int:
+    from .io import read_tum_trajectory
+    from .metrics import ate
+
+    t_gt, T_gt = read_tum_trajectory(args.groundtruth)
+    t_est, T_est = read_tum_trajectory(args.estimate)
+    result = ate(t_est, T_est, t_gt, T_gt, max_time_diff=args.max_diff, correct_scale=not args.no_scale)
+    print(f"ATE rmse {result.rmse:.6f}  mean {result.mean:.6f}  median {result.median:.6f}  max {result.max:.6f}  "
+          f"({result.num_poses} poses, scale {result.scale:.4f})")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="sl4slam", description="Dense SLAM from an uncalibrated monocular camera on SL(4).")
+    parser.add_argument("--version", action="version", version=f"sl4slam {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log details (fallbacks, rejected loops)")
+    verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
+
+    run = verbs.add_parser("run", help="run SLAM on an image folder, video, TUM or 7-Scenes sequence",
+                           formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    run.add_argument("source", help="image folder, video file, TUM RGB-D or 7-Scenes sequence folder")
+    run.add_argument("--out", required=True, help="output folder")
+    run.add_argument("--config", help="TOML or JSON file of settings (flags override it)")
+    run.add_argument("--replay", help="replay recorded frontend outputs from this folder instead of running the model")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_config_flags(run)
+    run.set_defaults(func=cmd_run)
+
+    demo = verbs.add_parser("demo", help="synthetic world: SL(4) versus Sim(3) under a projective distortion")
+    demo.add_argument("--out", default="sl4slam_demo", help="output folder")
+    demo.add_argument("--frames", type=int, default=600, help="frames of the synthetic world")
+    demo.add_argument("--perspective", type=float, default=0.08, help="perspective distortion of the simulated frontend")
+    demo.add_argument("--quiet", action="store_true", help="no progress bar")
+    demo.set_defaults(func=cmd_demo)
+
+    synth = verbs.add_parser("synth", help="render the synthetic RGB-D world to a TUM-format folder")
+    synth.add_argument("--out", required=True, help="output folder")
+    synth.add_argument("--frames", type=int, default=600)
+    synth.add_argument("--width", type=int, default=320)
+    synth.add_argument("--height", type=int, default=240)
+    synth.add_argument("--seed", type=int, default=0)
+    synth.set_defaults(func=cmd_synth)
+
+    convert = verbs.add_parser("convert", help="write a .safetensors copy of a VGGT checkpoint")
+    convert.add_argument("src", help="checkpoint (.pt or .safetensors)")
+    convert.add_argument("dst", help="output .safetensors")
+    convert.add_argument("--bf16", action="store_true", help="store the weights as bfloat16")
+    convert.set_defaults(func=cmd_convert)
+
+    ate_parser = verbs.add_parser("ate", help="ATE RMSE of a TUM trajectory (evo_ape -as)")
+    ate_parser.add_argument("groundtruth")
+    ate_parser.add_argument("estimate")
+    ate_parser.add_argument("--max-diff", type=float, default=0.01, help="timestamp association tolerance (s)")
+    ate_parser.add_argument("--no-scale", action="store_true", help="SE(3) instead of Sim(3) alignment")
+    ate_parser.set_defaults(func=cmd_ate)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except UserError as exc:
+        print(f"sl4slam: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("sl4slam: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

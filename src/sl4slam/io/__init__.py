@@ -1,0 +1,85 @@
+"""Sequence input/output: frame sources and TUM-format trajectories.
+
+``open_source(path)`` picks the reader from what ``path`` is:
+
+- a video file (by extension)                             -> :class:`VideoSource`
+- a folder with ``rgb.txt`` (or that ``rgb.txt`` itself)  -> :class:`TumSource`
+- a folder with ``frame-XXXXXX.color.*`` files            -> :class:`SevenScenesSource`
+- any other folder                                        -> :class:`ImageFolderSource`
+
+Every source yields :class:`sl4slam.types.Frame` records lazily (images are decoded when
+iterated or fetched with ``get``) and lists unreadable inputs in ``skipped``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from sl4slam.errors import UserError
+from sl4slam.io._common import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, natural_key, read_depth, read_rgb
+from sl4slam.io.image_folder import ImageFolderSource
+from sl4slam.io.memory import ListSource
+from sl4slam.io.seven_scenes import SevenScenesSource, is_seven_scenes_folder
+from sl4slam.io.tum import (
+    TUM_DEPTH_SCALE,
+    TumSource,
+    associate,
+    read_tum_trajectory,
+    tum_intrinsics,
+    write_tum_trajectory,
+)
+from sl4slam.io.video import VideoSource
+from sl4slam.types import FrameSource
+
+__all__ = [
+    "open_source",
+    "ImageFolderSource",
+    "VideoSource",
+    "TumSource",
+    "SevenScenesSource",
+    "ListSource",
+    "read_tum_trajectory",
+    "write_tum_trajectory",
+    "tum_intrinsics",
+    "associate",
+    "natural_key",
+    "read_rgb",
+    "read_depth",
+    "TUM_DEPTH_SCALE",
+]
+
+_KINDS = "an image folder, a video file, or a TUM RGB-D / 7-Scenes sequence folder"
+
+
+def open_source(path: str | Path, stride: int = 1, max_frames: int = 0) -> FrameSource:
+    """Open ``path`` as a frame source, detecting its kind (see the module docstring).
+
+    Args:
+        path: video file, image folder, TUM sequence folder (or its ``rgb.txt``), 7-Scenes
+            sequence folder.
+        stride: keep every ``stride``-th frame.
+        max_frames: keep at most this many frames (0 = all).
+
+    Raises:
+        UserError: the path does not exist, is an unsupported file, or holds no readable frames.
+    """
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise UserError(f"input {path} does not exist; pass {_KINDS}")
+    if path.is_file():
+        suffix = path.suffix.lower()
+        if suffix in VIDEO_EXTENSIONS:
+            return VideoSource(path, stride=stride, max_frames=max_frames)
+        if path.name == "rgb.txt":
+            return TumSource(path.parent, stride=stride, max_frames=max_frames)
+        if suffix in IMAGE_EXTENSIONS:
+            raise UserError(f"{path} is a single image; pass the folder that holds the sequence ({path.parent})")
+        raise UserError(f"{path} is not a supported input (unknown file type {suffix or 'without extension'}); pass {_KINDS}")
+    if (path / "rgb.txt").is_file():
+        return TumSource(path, stride=stride, max_frames=max_frames)
+    if is_seven_scenes_folder(path):
+        return SevenScenesSource(path, stride=stride, max_frames=max_frames)
+    sequences = sorted(p.name for p in path.glob("seq-*") if is_seven_scenes_folder(p))
+    if sequences:
+        raise UserError(f"{path} is a 7-Scenes scene with several sequences; pass one of them, e.g. {path / sequences[0]}")
+    return ImageFolderSource(path, stride=stride, max_frames=max_frames)

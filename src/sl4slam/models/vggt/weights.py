@@ -1,0 +1,281 @@
+"""Finding, reading, loading and converting VGGT checkpoints.
+
+Sources: a local ``.pt`` / ``.pth`` / ``.safetensors`` file, or a Hugging Face hub id (default
+``facebook/VGGT-1B``, file ``model.pt``; ``owner/name:file`` picks another file) resolved through
+huggingface_hub's cache. ``.pt`` files are read with ``weights_only=True``: tensors and plain
+containers only, never arbitrary pickled objects.
+
+Model sizes: a ``.safetensors`` file written by :func:`convert_checkpoint` (or
+:func:`save_checkpoint`) carries its :class:`VGGTModelConfig` as JSON in the metadata entry
+``vggt_config``; a ``.pt`` file may hold ``{"model": state_dict, "vggt_config": {...}}``. Without
+it the sizes are inferred from the tensor shapes; the only size that shapes cannot tell, the
+aggregator layers read by the dense heads, defaults to VGGT-1B's ``[4, 11, 17, 23]`` when the
+aggregator has 24 layers (any other depth needs the embedded config).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import pickle
+import re
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from ...errors import MissingWeightsError, UserError
+from .model import SKIPPED_PREFIXES, VGGT, VGGTModelConfig
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_HUB_ID = "facebook/VGGT-1B"
+DEFAULT_HUB_FILENAME = "model.pt"
+CONFIG_METADATA_KEY = "vggt_config"
+_LOCAL_SUFFIXES = (".pt", ".pth", ".bin", ".safetensors")
+_DTYPES = {"fp32": torch.float32, "float32": torch.float32, "bf16": torch.bfloat16, "bfloat16": torch.bfloat16,
+           "fp16": torch.float16, "float16": torch.float16}
+
+
+def _download_hint(repo_id: str, filename: str) -> str:
+    return (
+        f"download https://huggingface.co/{repo_id}/resolve/main/{filename} on a machine with internet access "
+        f"(or run `huggingface-cli download {repo_id} {filename}` there) and pass the file with --weights PATH"
+    )
+
+
+def _looks_like_path(weights: str) -> bool:
+    return weights.lower().endswith(_LOCAL_SUFFIXES) or weights.startswith((".", "/", "~")) or "\\" in weights
+
+
+def resolve_weights(weights: str, cache_dir: str | Path | None = None, local_files_only: bool | None = None) -> Path:
+    """Local path of ``weights`` (a file, or a hub id fetched into / found in the hub cache).
+
+    Raises:
+        MissingWeightsError: the file does not exist, or the hub file is neither cached nor
+            downloadable (offline); the message says how to obtain it.
+    """
+    path = Path(weights).expanduser()
+    if path.is_file():
+        return path
+    if path.is_dir():
+        for name in ("model.safetensors", DEFAULT_HUB_FILENAME):
+            if (path / name).is_file():
+                return path / name
+        raise MissingWeightsError(f"no model.safetensors or model.pt in folder {path}; {_download_hint(DEFAULT_HUB_ID, DEFAULT_HUB_FILENAME)}")
+    if _looks_like_path(weights) or not re.fullmatch(r"[\w.-]+/[\w.-]+(:[\w./-]+)?", weights):
+        raise MissingWeightsError(
+            f"VGGT weights file not found: {weights}; {_download_hint(DEFAULT_HUB_ID, DEFAULT_HUB_FILENAME)}"
+        )
+    repo_id, _, filename = weights.partition(":")
+    filename = filename or DEFAULT_HUB_FILENAME
+    try:
+        from huggingface_hub import hf_hub_download
+
+        kwargs = {"cache_dir": str(cache_dir) if cache_dir is not None else None}
+        if local_files_only is not None:
+            kwargs["local_files_only"] = local_files_only
+        return Path(hf_hub_download(repo_id, filename, **kwargs))
+    except Exception as exc:  # offline, unknown repo, HTTP errors: all mean "not available here"
+        raise MissingWeightsError(
+            f"VGGT weights {repo_id}/{filename} are not in the Hugging Face cache and could not be downloaded "
+            f"({type(exc).__name__}); {_download_hint(repo_id, filename)}"
+        ) from None
+
+
+def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict | None]:
+    """State dict and embedded config (or ``None``) of a ``.safetensors`` or ``.pt`` file, on CPU.
+
+    ``.pt`` files are memory-mapped when possible, so loading them with ``assign=True`` keeps a
+    single copy of the weights.
+    """
+    path = Path(path)
+    if path.suffix == ".safetensors":
+        from safetensors import safe_open
+        from safetensors.torch import load_file
+
+        with safe_open(str(path), framework="pt") as handle:
+            metadata = handle.metadata() or {}
+        config = json.loads(metadata[CONFIG_METADATA_KEY]) if CONFIG_METADATA_KEY in metadata else None
+        return load_file(str(path), device="cpu"), config
+    try:
+        try:
+            payload = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+        except RuntimeError:  # legacy (non-zip) serialisation cannot be memory-mapped
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        raise UserError(
+            f"{path} contains pickled objects other than tensors, which are not loaded for safety; "
+            f"convert a trusted copy to .safetensors ({str(exc).splitlines()[0]})"
+        ) from None
+    if not isinstance(payload, dict):
+        raise UserError(f"{path} does not hold a state dict (found {type(payload).__name__})")
+    config = payload.get(CONFIG_METADATA_KEY)
+    for key in ("model", "state_dict"):
+        if key in payload and isinstance(payload[key], dict):
+            payload = payload[key]
+            break
+    state_dict = {k: v for k, v in payload.items() if isinstance(v, torch.Tensor)}
+    if not state_dict:
+        raise UserError(f"{path} holds no tensors")
+    return state_dict, config
+
+
+def _block_count(state_dict: dict, prefix: str) -> int:
+    pattern = re.compile(re.escape(prefix) + r"(\d+)\.")
+    indices = {int(m.group(1)) for key in state_dict if (m := pattern.match(key))}
+    return max(indices) + 1 if indices else 0
+
+
+def infer_config(state_dict: dict[str, torch.Tensor]) -> VGGTModelConfig:
+    """Model sizes from checkpoint shapes (see the module docstring for the one assumption)."""
+    try:
+        embed_dim = state_dict["aggregator.camera_token"].shape[-1]
+        num_register_tokens = state_dict["aggregator.register_token"].shape[2]
+        depth = _block_count(state_dict, "aggregator.frame_blocks.")
+        head_dim = state_dict["aggregator.frame_blocks.0.attn.q_norm.weight"].shape[0]
+        patch_size = state_dict["aggregator.patch_embed.patch_embed.proj.weight"].shape[-1]
+        grid = math.isqrt(state_dict["aggregator.patch_embed.pos_embed"].shape[1] - 1)
+        mlp_hidden = state_dict["aggregator.frame_blocks.0.mlp.fc1.weight"].shape[0]
+    except KeyError as exc:
+        raise UserError(f"not a VGGT checkpoint: key {exc} is missing") from None
+    num_heads = embed_dim // head_dim
+    dense_prefix = "depth_head." if "depth_head.norm.weight" in state_dict else "point_head."
+    has_dense = f"{dense_prefix}norm.weight" in state_dict
+    if has_dense and depth != 24:
+        raise UserError(
+            "cannot tell which aggregator layers the dense heads read for a checkpoint with "
+            f"{depth} layers; save it with its config (convert_checkpoint(..., config=...))"
+        )
+    defaults = VGGTModelConfig()
+    return VGGTModelConfig(
+        img_size=grid * patch_size,
+        patch_size=patch_size,
+        embed_dim=embed_dim,
+        depth=depth,
+        num_heads=num_heads,
+        mlp_ratio=mlp_hidden / embed_dim,
+        num_register_tokens=num_register_tokens,
+        patch_embed_depth=_block_count(state_dict, "aggregator.patch_embed.blocks."),
+        # Head counts are not visible in the shapes; VGGT uses the aggregator's for all transformers.
+        patch_embed_num_heads=num_heads,
+        camera_trunk_depth=_block_count(state_dict, "camera_head.trunk."),
+        camera_num_heads=num_heads,
+        dpt_features=state_dict[f"{dense_prefix}scratch.layer1_rn.weight"].shape[0] if has_dense else defaults.dpt_features,
+        dpt_out_channels=[state_dict[f"{dense_prefix}projects.{i}.weight"].shape[0] for i in range(4)]
+        if has_dense
+        else defaults.dpt_out_channels,
+        dpt_layers=defaults.dpt_layers,
+        enable_camera="camera_head.token_norm.weight" in state_dict,
+        enable_depth="depth_head.norm.weight" in state_dict,
+        enable_point="point_head.norm.weight" in state_dict,
+    )
+
+
+def load_state_dict_into(model: VGGT, state_dict: dict[str, torch.Tensor], assign: bool = False) -> None:
+    """Load strictly, except for the ``track_head.*`` keys (not implemented), which are ignored.
+
+    Raises:
+        UserError: listing missing or unexpected keys (or shape mismatches).
+    """
+    kept = {k: v for k, v in state_dict.items() if not k.startswith(SKIPPED_PREFIXES)}
+    expected = set(model.state_dict().keys())
+    missing = sorted(expected - set(kept))
+    unexpected = sorted(set(kept) - expected)
+    if missing or unexpected:
+        raise UserError(
+            f"checkpoint does not match the VGGT model: {len(missing)} missing keys {missing[:5]}, "
+            f"{len(unexpected)} unexpected keys {unexpected[:5]}"
+        )
+    try:
+        model.load_state_dict(kept, strict=True, assign=assign)
+    except RuntimeError as exc:
+        raise UserError(f"checkpoint shapes do not match the VGGT model: {str(exc).splitlines()[-1].strip()}") from None
+
+
+def load_vggt(
+    weights: str = DEFAULT_HUB_ID,
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype | str | None = torch.float32,
+    config: VGGTModelConfig | None = None,
+    cache_dir: str | Path | None = None,
+    local_files_only: bool | None = None,
+) -> VGGT:
+    """Build a VGGT model from a checkpoint, in eval mode, holding one copy of the weights.
+
+    Args:
+        weights: local file or hub id (see :func:`resolve_weights`).
+        device: where the model lives.
+        dtype: parameter dtype (``None`` keeps the checkpoint's); "fp32"/"bf16"/"fp16" accepted.
+        config: model sizes; default: embedded in the checkpoint, else inferred from shapes.
+        cache_dir, local_files_only: passed to huggingface_hub for hub ids.
+
+    Raises:
+        MissingWeightsError: weights not available (message says how to get them).
+        UserError: not a compatible checkpoint.
+    """
+    path = resolve_weights(weights, cache_dir=cache_dir, local_files_only=local_files_only)
+    state_dict, embedded = read_checkpoint(path)
+    if config is None:
+        config = VGGTModelConfig.from_dict(embedded) if embedded else infer_config(state_dict)
+    with torch.device("meta"):
+        model = VGGT(config)
+    # assign=True adopts the checkpoint's tensors as parameters instead of copying into new ones.
+    load_state_dict_into(model, state_dict, assign=True)
+    del state_dict
+    if isinstance(dtype, str):
+        dtype = _DTYPES[dtype.lower()]
+    if dtype is not None:
+        model.to(dtype=dtype)
+    model.to(device)
+    model.eval()
+    for parameter in model.parameters():
+        parameter.requires_grad_(False)
+    logger.info("loaded VGGT weights from %s", path)
+    return model
+
+
+def save_checkpoint(state_dict: dict[str, torch.Tensor], path: str | Path, config: VGGTModelConfig | None = None) -> Path:
+    """Write a state dict as ``.safetensors`` (config embedded when given) or ``.pt`` (by suffix)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tensors: dict[str, torch.Tensor] = {}
+    seen: set[int] = set()
+    for key, value in state_dict.items():
+        value = value.detach().cpu().contiguous()
+        # safetensors refuses tensors sharing memory: give repeated storages their own copy.
+        pointer = value.untyped_storage().data_ptr()
+        tensors[key] = value.clone() if pointer in seen else value
+        seen.add(pointer)
+    if path.suffix == ".safetensors":
+        from safetensors.torch import save_file
+
+        metadata = {"format": "pt"}
+        if config is not None:
+            metadata[CONFIG_METADATA_KEY] = config.to_json()
+        save_file(tensors, str(path), metadata=metadata)
+    else:
+        payload: dict = {"model": tensors}
+        if config is not None:
+            payload[CONFIG_METADATA_KEY] = json.loads(config.to_json())
+        torch.save(payload, path)
+    return path
+
+
+def convert_checkpoint(src: str | Path, dst: str | Path, dtype: str = "fp32") -> Path:
+    """Copy a VGGT checkpoint (file or hub id) to ``dst`` ``.safetensors``, optionally in bf16/fp16.
+
+    Every key is kept (including ``track_head.*``); floating tensors are cast to ``dtype``; the
+    model config (embedded or inferred) is written into the metadata.
+    """
+    if dtype.lower() not in _DTYPES:
+        raise UserError(f"unknown dtype {dtype!r}; use fp32, bf16 or fp16")
+    dst = Path(dst)
+    if dst.suffix != ".safetensors":
+        raise UserError(f"conversion output must end in .safetensors, got {dst}")
+    target = _DTYPES[dtype.lower()]
+    state_dict, embedded = read_checkpoint(resolve_weights(str(src)))
+    config = VGGTModelConfig.from_dict(embedded) if embedded else infer_config(state_dict)
+    converted = {k: v.to(target) if v.is_floating_point() else v for k, v in state_dict.items()}
+    return save_checkpoint(converted, dst, config)

@@ -1,0 +1,231 @@
+"""Writing a run's results: trajectory, dense map, per-keyframe points, summary, plots.
+
+Every file is written to a temporary name and renamed into place, so an interrupted run never
+leaves a partial file, and nothing non-finite is ever written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .errors import UserError
+from .metrics import ATEResult, ate
+from .pipeline import SLAMResult
+from .submap import StoredKeyframe
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def keyframe_world_points(keyframe: StoredKeyframe, H_world_submap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points ``(H, W, 3)`` float32 of one keyframe and a validity mask ``(H, W)``.
+
+    Points go through the projective ``H_world_submap``; a point is valid when it passed the
+    confidence mask, and maps to a finite point in front of the plane at infinity (w > 0).
+    """
+    X = keyframe.points().astype(np.float64)
+    H = np.asarray(H_world_submap, dtype=np.float64)
+    w = X @ H[3, :3] + H[3, 3]
+    valid = keyframe.mask() & (w > 1e-9)
+    X_world = (X @ H[:3, :3].T + H[:3, 3]) / np.where(valid, w, 1.0)[..., None]
+    valid &= np.isfinite(X_world).all(axis=-1)
+    return X_world.astype(np.float32), valid
+
+
+def build_map(
+    result: SLAMResult, max_points: int, voxel_size: float = 0.0, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """The coloured dense map: ``(N, 3)`` float32 world points and ``(N, 3)`` uint8 colours.
+
+    Confidence-filtered; evenly subsampled (seeded) to at most ``max_points``; optionally one
+    point (the centroid, mean colour) per voxel of size ``voxel_size``.
+    """
+    counts = [int(np.unpackbits(k.mask_bits).sum()) for k in result.keyframes]
+    total = max(1, sum(counts))
+    keep_fraction = min(1.0, max_points / total) if max_points > 0 else 1.0
+    rng = np.random.default_rng(seed)
+    chunks_xyz, chunks_rgb = [], []
+    for keyframe in result.keyframes:
+        X, valid = keyframe_world_points(keyframe, result.H_world_submap[keyframe.submap_id])
+        xyz, rgb = X[valid], keyframe.colors[valid]
+        if keep_fraction < 1.0:
+            pick = rng.random(len(xyz)) < keep_fraction
+            xyz, rgb = xyz[pick], rgb[pick]
+        chunks_xyz.append(xyz)
+        chunks_rgb.append(rgb)
+    xyz = np.concatenate(chunks_xyz) if chunks_xyz else np.zeros((0, 3), np.float32)
+    rgb = np.concatenate(chunks_rgb) if chunks_rgb else np.zeros((0, 3), np.uint8)
+    if voxel_size > 0 and len(xyz):
+        xyz, rgb = voxel_downsample(xyz, rgb, voxel_size)
+    return xyz, rgb
+
+
+def voxel_downsample(xyz: np.ndarray, rgb: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Average points and colours per voxel: ``(N, 3)`` -> ``(M, 3)``."""
+    keys = np.floor(xyz / voxel_size).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inverse, xyz)
+    colour_sums = np.zeros((len(counts), 3))
+    np.add.at(colour_sums, inverse, rgb.astype(np.float64))
+    return (sums / counts[:, None]).astype(np.float32), np.round(colour_sums / counts[:, None]).astype(np.uint8)
+
+
+def write_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
+    """Binary little-endian PLY with float32 xyz and uint8 rgb (atomic)."""
+    if not np.all(np.isfinite(xyz)):
+        raise UserError("refusing to write a point cloud with NaN/Inf coordinates")
+    vertex = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    vertex["x"], vertex["y"], vertex["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    vertex["red"], vertex["green"], vertex["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(xyz)}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    )
+    atomic_write_bytes(Path(path), header.encode("ascii") + vertex.tobytes())
+
+
+def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a PLY written by ``write_ply``: ``(N, 3)`` float32 xyz, ``(N, 3)`` uint8 rgb."""
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    count = int([line for line in data[:end].decode("ascii").splitlines() if line.startswith("element vertex")][0].split()[-1])
+    vertex = np.frombuffer(data[end:], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")], count=count)
+    return np.stack([vertex["x"], vertex["y"], vertex["z"]], -1), np.stack([vertex["red"], vertex["green"], vertex["blue"]], -1)
+
+
+def peak_memory() -> dict:
+    """Process peak resident memory (and CUDA peak when used), in MiB."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    rss_mib = rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024
+    out = {"peak_rss_mib": round(rss_mib, 1)}
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.cuda.is_available() and torch.cuda.is_initialized():
+        out["peak_cuda_mib"] = round(torch.cuda.max_memory_allocated() / 2**20, 1)
+    return out
+
+
+def compute_ate(result: SLAMResult) -> ATEResult | None:
+    """ATE of the keyframe trajectory when ground truth is known (same timestamps)."""
+    if result.T_world_cam_gt is None or len(result.keyframes) < 3:
+        return None
+    return ate(result.timestamps, result.T_world_cam, result.timestamps, result.T_world_cam_gt)
+
+
+def plot_trajectories(path: Path, curves: dict[str, np.ndarray], gt: np.ndarray | None, title: str) -> None:
+    """Top view of trajectories ``{label: (N, 3)}`` (and ground truth) on the principal plane.
+
+    The plane is spanned by the two main directions of the ground truth (or of the first curve):
+    a top view whatever the dataset's world axes are.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    reference = gt if gt is not None else next(iter(curves.values()))
+    centre = reference.mean(0)
+    _, _, Vt = np.linalg.svd(reference - centre, full_matrices=False)
+    axes = Vt[:2]
+    fig, ax = plt.subplots(figsize=(6, 6))
+    if gt is not None:
+        p = (gt - centre) @ axes.T
+        ax.plot(p[:, 0], p[:, 1], "k--", lw=1.5, label="ground truth")
+    for label, positions in curves.items():
+        p = (positions - centre) @ axes.T
+        ax.plot(p[:, 0], p[:, 1], "-", lw=1.2, label=label)
+        ax.plot(p[:1, 0], p[:1, 1], "o", ms=4, color=ax.lines[-1].get_color())
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    ax.grid(alpha=0.3)
+    tmp = Path(path).with_name(Path(path).stem + ".tmp.png")
+    fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+def summarize(result: SLAMResult, config_dict: dict, ate_result: ATEResult | None, extra: dict | None = None) -> dict:
+    """The content of ``summary.json``."""
+    odometry = [e for e in result.edges if e.kind == "odometry"]
+    loops = [e for e in result.edges if e.kind == "loop"]
+    per_submap = result.stats.get("seconds_per_submap", [])
+
+    def ratios(edges: Sequence) -> dict:
+        values = np.array([e.inlier_ratio for e in edges]) if edges else np.zeros(0)
+        return {"count": len(values), "median": float(np.median(values)) if len(values) else None,
+                "min": float(values.min()) if len(values) else None}
+
+    summary = {
+        "counts": {k: result.stats[k] for k in ("frames", "keyframes", "submaps", "loops", "fallbacks") if k in result.stats},
+        "inlier_ratio": {"odometry": ratios(odometry), "loops": ratios(loops)},
+        "fallbacks": [{"submaps": [e.submap_from, e.submap_to], "frame": e.frame_index, "reason": e.fallback}
+                      for e in result.edges if e.fallback],
+        "loops": [{"submaps": [e.submap_from, e.submap_to], "frame": e.frame_index, "inlier_ratio": round(e.inlier_ratio, 4),
+                   "rms": round(e.rms, 6)} for e in loops],
+        "seconds": {"total": round(result.stats.get("seconds_total", 0.0), 3),
+                    "by_stage": {k: round(v, 3) for k, v in result.stats.get("seconds_by_stage", {}).items()},
+                    "per_submap_median": per_submap},
+        "memory": {**peak_memory(), "stored_keyframe_bytes": result.stats.get("stored_bytes", 0)},
+        "config": config_dict,
+    }
+    if ate_result is not None:
+        summary["ate"] = {"rmse": ate_result.rmse, "mean": ate_result.mean, "median": ate_result.median,
+                          "max": ate_result.max, "poses": ate_result.num_poses, "scale": ate_result.scale,
+                          "metric": "evo_ape -as (translation, Sim(3) Umeyama alignment)"}
+    if extra:
+        summary.update(extra)
+    return summary
+
+
+def write_outputs(result: SLAMResult, out_dir: Path, config, source_name: str = "", skipped: Sequence[str] = ()) -> dict:
+    """Write ``trajectory.txt``, ``map.ply``, ``keyframes/``, ``summary.json``, ``trajectory.png``.
+
+    Returns the summary dict.
+    """
+    from .config import config_to_dict
+    from .io import write_tum_trajectory
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if not np.all(np.isfinite(result.T_world_cam)):
+        raise UserError("the optimized trajectory has non-finite poses; the alignment degenerated — see summary fallbacks")
+    write_tum_trajectory(out_dir / "trajectory.txt", result.timestamps, result.T_world_cam)
+    xyz, rgb = build_map(result, config.output.max_map_points, config.output.voxel_size, seed=config.alignment.seed)
+    write_ply(out_dir / "map.ply", xyz, rgb)
+    if config.output.save_keyframe_points:
+        write_keyframe_points(result, out_dir / "keyframes")
+    ate_result = compute_ate(result)
+    curves = {"estimate": ate_result.positions_aligned if ate_result else result.T_world_cam[:, :3, 3]}
+    plot_trajectories(out_dir / "trajectory.png", curves, ate_result.positions_gt if ate_result else None,
+                      f"{source_name} ({config.backend.kind})" if source_name else config.backend.kind)
+    summary = summarize(result, config_to_dict(config), ate_result,
+                        {"source": source_name, "skipped_inputs": list(skipped), "map_points": int(len(xyz))})
+    atomic_write_bytes(out_dir / "summary.json", json.dumps(summary, indent=2).encode())
+    return summary
+
+
+def write_keyframe_points(result: SLAMResult, directory: Path) -> None:
+    """One ``.npz`` per keyframe: world points ``(H, W, 3)`` float32, mask, colours, camera."""
+    directory.mkdir(parents=True, exist_ok=True)
+    for keyframe, T_world_cam, K in zip(result.keyframes, result.T_world_cam, result.K):
+        X, valid = keyframe_world_points(keyframe, result.H_world_submap[keyframe.submap_id])
+        X[~valid] = 0.0
+        target = directory / f"{keyframe.frame_index:06d}.npz"
+        tmp = directory / f"{keyframe.frame_index:06d}.tmp.npz"
+        np.savez(tmp, points_world=X, mask=valid, colors=keyframe.colors, K=K, T_world_cam=T_world_cam,
+                 timestamp=keyframe.timestamp, submap_id=keyframe.submap_id)
+        os.replace(tmp, target)

@@ -1,0 +1,36 @@
+"""Loop-closure retrieval behind the ``Retrieval`` interface (``sl4slam.types``).
+
+- ``orb``: weights-free ORB features, bag-of-words ranking and geometric verification (CPU, no download).
+- ``salad``: DINOv2 + SALAD descriptors as in the paper (needs ``dino_salad.ckpt``).
+- ``none``: no loop closure.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from ..config import RetrievalConfig
+from ..errors import UserError
+from ..types import Retrieval
+
+log = logging.getLogger("sl4slam")
+
+
+def make_retrieval(config: RetrievalConfig, device: str = "cpu", seed: int = 0) -> Retrieval | None:
+    """The retrieval named by ``config.kind``; ``None`` for "none"."""
+    kind = config.kind
+    if kind == "none":
+        return None
+    if kind == "salad":
+        from .salad import SaladRetrieval
+
+        return SaladRetrieval(config, device=device)
+    if kind == "orb":
+        from .orb import OrbRetrieval
+
+        return OrbRetrieval(config, seed=seed)
+    raise UserError(f"unknown retrieval '{kind}': use --retrieval orb, salad or none")
+
+
+__all__ = ["make_retrieval"]

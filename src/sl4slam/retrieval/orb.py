@@ -1,0 +1,360 @@
+"""Weights-free loop-closure retrieval: ORB features, binary bag of words, epipolar verification.
+
+A CPU-only stand-in for SALAD (paper 4.3) that needs no download. Per stored keyframe we keep
+its ORB keypoints and descriptors and a sparse bag of binary words; a query
+
+1. ranks the stored keyframes of eligible submaps (ids ``<= submap_id - 1 - tau_interval``) by
+   tf-idf cosine similarity of their word histograms (one sparse matrix product over the whole
+   database, so ranking stays vectorized as it grows),
+2. geometrically verifies the best ``RetrievalConfig.orb_candidates``: one-to-one nearest-neighbour
+   Hamming matching with Lowe's ratio test, then a fundamental-matrix RANSAC
+   (``cv2.findFundamentalMat``, seeded with ``cv2.setRNGSeed``),
+3. accepts a match when at least ``RetrievalConfig.orb_min_inliers`` matches are epipolar
+   inliers.
+
+Precision comes before recall (one false loop bends the whole map): unrelated images give fewer
+than about 10 epipolar inliers, a revisit gives hundreds, and the default acceptance at 40 sits
+well between.
+
+Binary words. Each word table hashes a descriptor to the integer formed by ``WORD_BITS`` of its
+256 bits, chosen once from the seed (bit-sampling locality-sensitive hashing for Hamming space):
+two descriptors of the same point (Hamming distance ~20-40) share a table's word with
+probability 0.05-0.25, two unrelated ones (~128) with 2**-16. ``WORD_TABLES`` tables give a vocabulary
+of ``WORD_TABLES * 2**WORD_BITS`` words that needs no training, does not change as the database
+grows, and is the same for every run with the same seed. Inverse document frequencies come from
+the stored keyframes at query time.
+
+Distance. ``LoopCandidate.distance = 1 - inliers / orb_features``: one minus the share of the
+feature budget that was geometrically verified; in ``[0, 1)``, smaller = more similar, and
+monotone in the inlier count, so candidates of different queries compare by their evidence.
+It is not on SALAD's scale: ``RetrievalConfig.tau_desc`` does not apply, the acceptance test is
+``orb_min_inliers`` (distance ``< 1 - orb_min_inliers / orb_features``, 0.96 by default).
+
+Memory per stored keyframe (1000 features): descriptors 32 kB uint8, keypoints 8 kB float32,
+words <= 32 kB (int32 ids + float32 term frequencies); no images are kept.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
+import numpy as np
+import scipy.sparse
+
+from ..config import RetrievalConfig
+from ..errors import UserError
+from ..types import LoopCandidate
+
+WORD_BITS = 16
+"""Descriptor bits per binary word (2**16 words per table). Fewer bits make words so common
+that unrelated images score almost like revisits (10 bits: 0.54 versus 0.66 on the TUM excerpt);
+more bits make a true revisit share too few words."""
+WORD_TABLES = 4
+"""Independent bit-sampling tables; the vocabulary has WORD_TABLES * 2**WORD_BITS words."""
+DESCRIPTOR_BITS = 256
+"""ORB descriptors are 32 bytes."""
+MIN_FUNDAMENTAL_MATCHES = 8
+"""RANSAC on the fundamental matrix needs at least 8 correspondences."""
+
+
+@dataclass
+class OrbFeatures:
+    """ORB features of one image at the working resolution.
+
+    Attributes:
+        keypoints: ``(N, 2)`` float32 pixel coordinates (x, y) at the working resolution.
+        descriptors: ``(N, 32)`` uint8 ORB descriptors.
+        word_ids: ``(M,)`` int32 distinct binary words of the image, ascending.
+        word_tf: ``(M,)`` float32 term frequencies of ``word_ids`` (sum to 1 when ``M > 0``).
+    """
+
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    word_ids: np.ndarray
+    word_tf: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.keypoints.shape[0])
+
+
+def match_descriptors(
+    descriptors_query: np.ndarray, descriptors_stored: np.ndarray, ratio: float, max_hamming: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest-neighbour matches that pass Lowe's ratio test, an absolute bound, and are one-to-one.
+
+    Brute-force Hamming search (``cv2.batchDistance``, two nearest neighbours per query
+    descriptor, returned as arrays). A stored descriptor claimed by several query descriptors is
+    ambiguous and dropped: a cheap stand-in for a mutual-nearest-neighbour check, which would
+    need a second full search.
+
+    Args:
+        descriptors_query: ``(N, 32)`` uint8 ORB descriptors.
+        descriptors_stored: ``(M, 32)`` uint8 ORB descriptors, ``M >= 2``.
+        ratio: keep a match when nearest < ratio * second nearest distance.
+        max_hamming: keep a match when its Hamming distance (of 256 bits) is at most this.
+
+    Returns:
+        ``(query_idx, stored_idx)``: ``(K,)`` int64 indices of the kept matches, by query index.
+    """
+    distances, neighbours = cv2.batchDistance(
+        descriptors_query, descriptors_stored, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2
+    )
+    nearest = neighbours[:, 0].astype(np.int64)
+    keep = (distances[:, 0] < ratio * distances[:, 1]) & (distances[:, 0] <= max_hamming) & (nearest >= 0)
+    claims = np.bincount(nearest[keep], minlength=len(descriptors_stored))
+    keep &= claims[np.maximum(nearest, 0)] == 1
+    query_idx = np.flatnonzero(keep)
+    return query_idx, nearest[query_idx]
+
+
+class OrbRetrieval:
+    """Place recognition with ORB features (implements ``sl4slam.types.Retrieval``, name "orb").
+
+    Deterministic: the vocabulary and the RANSAC sampling depend only on ``seed``.
+
+    Args:
+        config: ``RetrievalConfig``; uses ``tau_interval``, ``orb_features``, ``orb_candidates``,
+            ``orb_min_inliers``.
+        seed: seed of the word tables and of the RANSAC sampler.
+        max_image_side: images whose longer side exceeds this (px) are downscaled to it before
+            feature extraction, so cost and the epipolar threshold do not depend on input size.
+        ratio: Lowe's ratio test threshold.
+        max_hamming: largest Hamming distance (of 256 bits) of a tentative match.
+        epipolar_threshold_px: RANSAC inlier distance to the epipolar line, px at the working
+            resolution.
+    """
+
+    name = "orb"
+
+    def __init__(
+        self,
+        config: RetrievalConfig | None = None,
+        seed: int = 0,
+        *,
+        max_image_side: int = 640,
+        ratio: float = 0.8,
+        max_hamming: float = 64.0,
+        epipolar_threshold_px: float = 1.5,
+    ) -> None:
+        self.config = config if config is not None else RetrievalConfig()
+        if self.config.orb_features < MIN_FUNDAMENTAL_MATCHES:
+            raise UserError(f"retrieval.orb_features must be at least {MIN_FUNDAMENTAL_MATCHES}, got {self.config.orb_features}")
+        if self.config.orb_candidates < 1:
+            raise UserError(f"retrieval.orb_candidates must be at least 1, got {self.config.orb_candidates}")
+        if self.config.orb_min_inliers < 1:
+            raise UserError(f"retrieval.orb_min_inliers must be at least 1, got {self.config.orb_min_inliers}")
+        if self.config.tau_interval < 0:
+            raise UserError(f"retrieval.tau_interval must be >= 0, got {self.config.tau_interval}")
+        if max_image_side < 64:
+            raise UserError(f"max_image_side must be at least 64 px, got {max_image_side}")
+        self.seed = int(seed)
+        self.max_image_side = int(max_image_side)
+        self.ratio = float(ratio)
+        self.max_hamming = float(max_hamming)
+        self.epipolar_threshold_px = float(epipolar_threshold_px)
+        self.vocabulary_size = WORD_TABLES << WORD_BITS
+
+        rng = np.random.default_rng(self.seed)
+        # (WORD_TABLES, WORD_BITS) descriptor bit positions: distinct within a table.
+        self._word_bit_positions = np.stack(
+            [rng.choice(DESCRIPTOR_BITS, size=WORD_BITS, replace=False) for _ in range(WORD_TABLES)]
+        )
+        self._orb = cv2.ORB_create(nfeatures=int(self.config.orb_features))
+
+        # Database: one entry per stored keyframe.
+        self._frame_indices: list[int] = []
+        self._submap_ids = np.zeros(0, np.int64)
+        self._keypoints: list[np.ndarray] = []
+        self._descriptors: list[np.ndarray] = []
+        self._document_frequency = np.zeros(self.vocabulary_size, np.int32)
+        # Term-frequency matrix (stored keyframes x words) as growable CSR buffers.
+        self._tf_indptr = np.zeros(1, np.int64)
+        self._tf_indices = np.zeros(0, np.int32)
+        self._tf_data = np.zeros(0, np.float32)
+        self._tf_nnz = 0
+        # Features of the latest query batch, keyed by frame index, reused by the following add().
+        self._pending: dict[int, tuple[bytes, OrbFeatures]] = {}
+
+    def __len__(self) -> int:
+        """Number of stored keyframes."""
+        return len(self._frame_indices)
+
+    # ----------------------------------------------------------------------------------- features
+
+    def extract(self, image: np.ndarray) -> OrbFeatures:
+        """ORB features and binary words of ``image``: ``(H, W, 3)`` uint8 RGB or ``(H, W)`` uint8 grey."""
+        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3) or (
+            image.ndim == 3 and image.shape[2] != 3
+        ):
+            shape = getattr(image, "shape", None)
+            dtype = getattr(image, "dtype", type(image).__name__)
+            raise UserError(f"ORB retrieval needs (H, W, 3) uint8 RGB images, got shape {shape} dtype {dtype}")
+        grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+        longer_side = max(grey.shape)
+        if longer_side > self.max_image_side:
+            scale = self.max_image_side / longer_side
+            size = (max(1, round(grey.shape[1] * scale)), max(1, round(grey.shape[0] * scale)))
+            grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+        keypoints, descriptors = self._orb.detectAndCompute(grey, None)
+        if descriptors is None or len(keypoints) == 0:
+            empty = np.zeros(0, np.int32)
+            return OrbFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), empty, np.zeros(0, np.float32))
+        points = cv2.KeyPoint_convert(keypoints).astype(np.float32).reshape(-1, 2)
+        word_ids, word_tf = self._words(descriptors)
+        return OrbFeatures(points, np.ascontiguousarray(descriptors, np.uint8), word_ids, word_tf)
+
+    def _words(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distinct word ids ``(M,)`` int32 and their term frequencies ``(M,)`` float32."""
+        bits = np.unpackbits(descriptors, axis=1).astype(np.int64)  # (N, 256)
+        place_values = np.int64(1) << np.arange(WORD_BITS, dtype=np.int64)
+        table_offsets = np.arange(WORD_TABLES, dtype=np.int64) << WORD_BITS
+        # (N, WORD_TABLES) word of each descriptor in each table, offset into one vocabulary.
+        words = bits[:, self._word_bit_positions] @ place_values + table_offsets
+        word_ids, counts = np.unique(words.reshape(-1), return_counts=True)
+        return word_ids.astype(np.int32), (counts / counts.sum()).astype(np.float32)
+
+    def _features(self, frame_index: int, image: np.ndarray) -> OrbFeatures:
+        """Features of ``image``, reusing the latest query's extraction of the same image."""
+        key = _image_key(image)
+        cached = self._pending.get(int(frame_index))
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        features = self.extract(image)
+        self._pending[int(frame_index)] = (key, features)
+        return features
+
+    # ----------------------------------------------------------------------------------- database
+
+    def add(self, frame_indices: Sequence[int], images: Sequence[np.ndarray], submap_id: int) -> None:
+        """Store keyframes ``frame_indices`` (images ``(H, W, 3)`` uint8 RGB) of submap ``submap_id``."""
+        _check_lengths(frame_indices, images)
+        batch = [self._features(index, image) for index, image in zip(frame_indices, images)]
+        self._pending.clear()
+        for index, features in zip(frame_indices, batch):
+            self._frame_indices.append(int(index))
+            self._keypoints.append(features.keypoints)
+            self._descriptors.append(features.descriptors)
+            self._append_tf_row(features.word_ids, features.word_tf)
+            self._document_frequency[features.word_ids] += 1
+        self._submap_ids = np.concatenate([self._submap_ids, np.full(len(batch), int(submap_id), np.int64)])
+
+    def _append_tf_row(self, word_ids: np.ndarray, word_tf: np.ndarray) -> None:
+        needed = self._tf_nnz + len(word_ids)
+        if needed > len(self._tf_indices):  # grow geometrically: amortized O(1) per entry
+            capacity = max(needed, 2 * len(self._tf_indices), 4096)
+            self._tf_indices = np.concatenate([self._tf_indices[: self._tf_nnz], np.zeros(capacity - self._tf_nnz, np.int32)])
+            self._tf_data = np.concatenate([self._tf_data[: self._tf_nnz], np.zeros(capacity - self._tf_nnz, np.float32)])
+        self._tf_indices[self._tf_nnz : needed] = word_ids
+        self._tf_data[self._tf_nnz : needed] = word_tf
+        self._tf_nnz = needed
+        self._tf_indptr = np.append(self._tf_indptr, needed)
+
+    def similarity(self, query_features: Sequence[OrbFeatures]) -> np.ndarray:
+        """tf-idf cosine similarity ``(num_stored, num_queries)`` float32 of every stored keyframe to each query.
+
+        Inverse document frequency ``log(1 + n / max(n_w, 1))`` over the ``n`` stored keyframes,
+        ``n_w`` of which contain word ``w``: positive even for a word in every keyframe (a
+        database of one keyframe still ranks); all stored keyframes are scored in one sparse
+        product.
+        """
+        num_stored = len(self)
+        if num_stored == 0 or len(query_features) == 0:
+            return np.zeros((num_stored, len(query_features)), np.float32)
+        idf = np.log1p(num_stored / np.maximum(self._document_frequency, 1)).astype(np.float32)
+        indices = self._tf_indices[: self._tf_nnz]
+        data = self._tf_data[: self._tf_nnz]
+        shape = (num_stored, self.vocabulary_size)
+        tf_idf = scipy.sparse.csr_matrix((data * idf[indices], indices, self._tf_indptr), shape=shape)
+        stored_norm = np.sqrt(np.asarray(tf_idf.multiply(tf_idf).sum(axis=1)).reshape(-1))
+        query_rows = np.concatenate([[0], np.cumsum([len(f.word_ids) for f in query_features])])
+        query_words = np.concatenate([f.word_ids for f in query_features])
+        query_values = np.concatenate([f.word_tf for f in query_features]) * idf[query_words]
+        queries = scipy.sparse.csr_matrix(
+            (query_values, query_words, query_rows), shape=(len(query_features), self.vocabulary_size)
+        )
+        query_norm = np.sqrt(np.asarray(queries.multiply(queries).sum(axis=1)).reshape(-1))
+        dots = (tf_idf @ queries.T).toarray().astype(np.float32)
+        denominator = np.maximum(stored_norm[:, None] * query_norm[None, :], 1e-12)
+        return (dots / denominator).astype(np.float32)
+
+    # -------------------------------------------------------------------------------------- query
+
+    def verify(self, query: OrbFeatures, stored_position: int) -> int:
+        """Epipolar inliers between ``query`` and the stored keyframe at ``stored_position``.
+
+        Returns 0 when there are too few tentative matches to reach ``orb_min_inliers``.
+        """
+        stored_descriptors = self._descriptors[stored_position]
+        needed = max(MIN_FUNDAMENTAL_MATCHES, int(self.config.orb_min_inliers))
+        if len(query) < needed or len(stored_descriptors) < needed:
+            return 0
+        query_idx, stored_idx = match_descriptors(query.descriptors, stored_descriptors, self.ratio, self.max_hamming)
+        if len(query_idx) < needed:
+            return 0
+        points_query = query.keypoints[query_idx].astype(np.float64)
+        points_stored = self._keypoints[stored_position][stored_idx].astype(np.float64)
+        cv2.setRNGSeed(self.seed)  # RANSAC sampling: the same result for the same pair, whatever came before
+        fundamental, mask = cv2.findFundamentalMat(
+            points_query, points_stored, cv2.FM_RANSAC, self.epipolar_threshold_px, 0.999, 2000
+        )
+        if fundamental is None or mask is None:
+            return 0
+        return int(np.count_nonzero(mask))
+
+    def query(
+        self, frame_indices: Sequence[int], images: Sequence[np.ndarray], submap_id: int, max_results: int
+    ) -> list[LoopCandidate]:
+        """Loop candidates for the new keyframes ``frame_indices`` of submap ``submap_id``, best first.
+
+        Only stored keyframes of submaps with id ``<= submap_id - 1 - tau_interval`` are
+        considered. For each query keyframe the ``orb_candidates`` most similar stored keyframes
+        (bag of words) are verified and the one with most epipolar inliers is kept if it has at
+        least ``orb_min_inliers``. The kept candidates are sorted by distance (ties: query frame,
+        then match frame) and the first ``max_results`` returned.
+        """
+        _check_lengths(frame_indices, images)
+        batch = [self._features(index, image) for index, image in zip(frame_indices, images)]
+        # Keep only this batch for the add() that follows, so repeated queries do not accumulate.
+        self._pending = {int(index): self._pending[int(index)] for index in frame_indices}
+        if max_results <= 0 or len(self) == 0:
+            return []
+        eligible = np.flatnonzero(self._submap_ids <= int(submap_id) - 1 - int(self.config.tau_interval))
+        if len(eligible) == 0:
+            return []
+        scores = self.similarity(batch)[eligible]  # (num_eligible, num_queries)
+        budget = float(self.config.orb_features)
+        candidates: list[LoopCandidate] = []
+        for column, (frame_index, features) in enumerate(zip(frame_indices, batch)):
+            order = np.argsort(-scores[:, column], kind="stable")[: int(self.config.orb_candidates)]
+            best_inliers, best_position = 0, -1
+            for position in eligible[order[scores[order, column] > 0]]:
+                inliers = self.verify(features, int(position))
+                if inliers > best_inliers:
+                    best_inliers, best_position = inliers, int(position)
+            if best_position >= 0 and best_inliers >= self.config.orb_min_inliers:
+                candidates.append(
+                    LoopCandidate(
+                        query_frame=int(frame_index),
+                        match_frame=self._frame_indices[best_position],
+                        match_submap=int(self._submap_ids[best_position]),
+                        distance=float(max(0.0, 1.0 - best_inliers / budget)),
+                    )
+                )
+        candidates.sort(key=lambda c: (c.distance, c.query_frame, c.match_frame))
+        return candidates[:max_results]
+
+
+def _image_key(image: np.ndarray) -> bytes:
+    """Content digest of an image, to recognise the same image passed to query() then add()."""
+    array = np.ascontiguousarray(image)
+    digest = hashlib.blake2b(array.data, digest_size=16)
+    digest.update(repr((array.shape, array.dtype.str)).encode())
+    return digest.digest()
+
+
+def _check_lengths(frame_indices: Sequence[int], images: Sequence[np.ndarray]) -> None:
+    if len(frame_indices) != len(images):
+        raise UserError(f"retrieval got {len(frame_indices)} frame indices but {len(images)} images; pass one image per index")

@@ -1,0 +1,296 @@
+"""Relative alignment: DLT, RANSAC in SL(4) and Sim(3), fallbacks, shared-frame Sim(3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sl4slam.alignment import (
+    dlt_sl4,
+    estimate_sim3,
+    estimate_sl4,
+    minimal_sl4_batch,
+    normalize_points,
+    sim3_from_shared_frame,
+)
+from sl4slam.config import AlignmentConfig
+from sl4slam.geometry import apply_transform, normalize_sl4, se3_inverse
+
+
+def rotation(rng: np.random.Generator, max_angle: float) -> np.ndarray:
+    """Random rotation ``(3, 3)`` with angle below ``max_angle`` (Rodrigues)."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = rng.uniform(-max_angle, max_angle)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def near_identity_sl4(rng: np.random.Generator) -> np.ndarray:
+    """An SL(4) map like the projective ambiguity between two submaps: rotation, scale, shear,
+    translation and a perspective row with entries of magnitude 0.05-0.2."""
+    while True:
+        H = np.eye(4)
+        H[:3, :3] = rng.uniform(0.7, 1.4) * rotation(rng, 0.3) @ (np.eye(3) + rng.uniform(-0.1, 0.1, (3, 3)))
+        H[:3, 3] = rng.uniform(-0.3, 0.3, 3)
+        H[3, :3] = rng.choice([-1.0, 1.0], 3) * rng.uniform(0.05, 0.2, 3)
+        if np.linalg.det(H) > 0:
+            return normalize_sl4(H)
+
+
+def frame_points(
+    rng: np.random.Generator,
+    H_a_b: np.ndarray,
+    height: int = 74,
+    width: int = 130,
+    noise: float = 0.002,
+    outlier_fraction: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One camera frame's confident points in submaps ``b`` and ``a``.
+
+    Depth 0.5-3 units on a smooth non-planar surface, a random camera pose in submap ``b``,
+    ``X_a = H_a_b X_b`` plus Gaussian noise, ~68 % of pixels kept by a blotchy confidence mask,
+    and outliers in image-space blobs, each blob shifted coherently by 0.05-0.3 units.
+
+    Returns:
+        ``X_a (N, 3)``, ``X_b (N, 3)``, ``is_inlier (N,)``.
+    """
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    focal = 0.8 * width
+    x, y = (u - width / 2) / focal, (v - height / 2) / focal
+    depth = 1.7 + 1.6 * y + 0.35 * np.sin(8.2 * u / width + 0.4) * np.cos(5.0 * v / height) + 0.25 * np.cos(9 * x)
+    depth = np.clip(depth, 0.5, 3.0)
+    X_cam = np.stack([x * depth, y * depth, depth], axis=-1)
+    X_b = X_cam @ rotation(rng, 0.5).T + rng.uniform(-0.5, 0.5, 3)
+    confidence = np.sin(u / 9.0 + rng.uniform(0, 6)) * np.cos(v / 6.0 + rng.uniform(0, 6)) + 0.3 * rng.normal(size=u.shape)
+    confident = confidence > np.quantile(confidence, 0.32)
+    outlier = np.zeros((height, width), dtype=bool)
+    while outlier[confident].mean() < outlier_fraction:
+        centre = rng.uniform([0, 0], [height, width])
+        radius = rng.uniform(0.03, 0.12) * width
+        outlier |= (v - centre[0]) ** 2 + (u - centre[1]) ** 2 < radius**2
+    X_a = apply_transform(H_a_b, X_b)
+    # Coherent shifts per 10x10 px cell make the outliers spatially clustered and structured.
+    cell = (v // 10 * 1000 + u // 10).astype(int)[outlier]
+    _, cell_index = np.unique(cell, return_inverse=True)
+    shifts = rng.normal(size=(cell_index.max() + 1 if cell.size else 0, 3))
+    shifts *= rng.uniform(0.05, 0.3, (len(shifts), 1)) / np.linalg.norm(shifts, axis=1, keepdims=True)
+    X_a[outlier] += shifts[cell_index]
+    X_a += rng.normal(scale=noise, size=X_a.shape)
+    return X_a[confident], X_b[confident], ~outlier[confident]
+
+
+def points_in_front(rng: np.random.Generator, H: np.ndarray, count: int) -> np.ndarray:
+    """``count`` random points in a box whose image under ``H`` has ``w > 0.2``."""
+    X = rng.uniform(-1.5, 1.5, size=(20 * count, 3)) + [0, 0, 2]
+    w = X @ H[3, :3] + H[3, 3]
+    return X[w > 0.2][:count]
+
+
+def transfer_rms(H_est: np.ndarray, H_true: np.ndarray, X_b: np.ndarray) -> float:
+    """RMS distance between the points ``X_b (N, 3)`` mapped by the estimate and by the truth."""
+    return float(np.sqrt(((apply_transform(H_est, X_b) - apply_transform(H_true, X_b)) ** 2).sum(1).mean()))
+
+
+def random_sl4(rng: np.random.Generator) -> np.ndarray:
+    while True:
+        H = np.eye(4) + 0.4 * rng.normal(size=(4, 4))
+        if np.linalg.det(H) > 0:
+            return normalize_sl4(H)
+
+
+@pytest.mark.parametrize("count", [5, 1000])
+def test_dlt_recovers_random_sl4_exactly(count: int) -> None:
+    rng = np.random.default_rng(count)
+    for _ in range(5):
+        H = random_sl4(rng)
+        X_b = points_in_front(rng, H, count)
+        assert len(X_b) == count
+        H_est = dlt_sl4(apply_transform(H, X_b), X_b)
+        assert np.linalg.det(H_est) == pytest.approx(1.0, abs=1e-9)
+        np.testing.assert_allclose(H_est, H, atol=1e-8 * np.abs(H).max())
+
+
+def test_dlt_fixes_sign_and_rejects_too_few_points() -> None:
+    rng = np.random.default_rng(3)
+    H = random_sl4(rng)
+    X_b = points_in_front(rng, H, 50)
+    X_a = apply_transform(H, X_b)
+    # Whatever sign the null vector comes out with, w > 0 on the points decides it.
+    w = X_b @ dlt_sl4(X_a, X_b)[3, :3] + dlt_sl4(X_a, X_b)[3, 3]
+    assert (w > 0).all()
+    with pytest.raises(ValueError, match="at least 5"):
+        dlt_sl4(X_a[:4], X_b[:4])
+
+
+def test_minimal_batch_matches_truth_and_discards_degenerate_samples() -> None:
+    rng = np.random.default_rng(4)
+    H = near_identity_sl4(rng)
+    X_b = points_in_front(rng, H, 40).reshape(8, 5, 3)
+    X_a = apply_transform(H, X_b)
+    # Sample 0: four coplanar points (z = 2); sample 1: a repeated point.
+    X_b[0, :4, 2] = 2.0
+    X_a[0] = apply_transform(H, X_b[0])
+    X_b[1, 4], X_a[1, 4] = X_b[1, 0], X_a[1, 0]
+    H_batch, valid = minimal_sl4_batch(X_a, X_b)
+    assert valid.tolist() == [False, False] + [True] * 6
+    for H_est in H_batch[valid]:
+        np.testing.assert_allclose(H_est, H, atol=1e-8)
+
+
+def test_minimal_batch_discards_samples_split_by_the_plane_at_infinity() -> None:
+    # Points on both sides of the plane w = 0 of H: such a hypothesis is not a valid alignment.
+    H = np.eye(4)
+    H[3, 2] = 1.0  # w = z + 1
+    X_b = np.array([[0.3, 0.1, 0.5], [-0.4, 0.2, 1.0], [0.1, -0.3, 2.0], [0.5, 0.5, -3.0], [-0.2, 0.4, 0.2]])
+    X_a = apply_transform(H, X_b)
+    _, valid = minimal_sl4_batch(X_a[None], X_b[None])
+    assert not valid[0]
+
+
+def test_normalize_points_is_hartley() -> None:
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(100, 3)) * 7 + 40
+    X_n, T = normalize_points(X)
+    np.testing.assert_allclose(X_n.mean(0), 0, atol=1e-12)
+    assert np.linalg.norm(X_n, axis=1).mean() == pytest.approx(np.sqrt(3))
+    np.testing.assert_allclose(apply_transform(T, X), X_n, atol=1e-12)
+
+
+def test_ransac_recovers_h_with_40_percent_clustered_outliers() -> None:
+    rng = np.random.default_rng(6)
+    H = near_identity_sl4(rng)
+    # Half the 518x294 prediction grid: ~26k confident points, ~15k inliers.
+    X_a, X_b, is_inlier = frame_points(rng, H, height=147, width=259, outlier_fraction=0.4)
+    assert 0.38 < 1 - is_inlier.mean() < 0.55 and len(X_a) > 20000
+    result = estimate_sl4(X_a, X_b, AlignmentConfig(), seed=0)
+    assert result.model == "sl4" and result.fallback is None
+    assert np.linalg.det(result.H) == pytest.approx(1.0, abs=1e-9)
+    assert np.abs(result.H - H).max() < 1e-3
+    assert (result.inliers == is_inlier).mean() > 0.995
+    # As accurate as a least-squares fit that knows which points are inliers.
+    oracle = dlt_sl4(X_a[is_inlier], X_b[is_inlier])
+    assert transfer_rms(result.H, H, X_b[is_inlier]) < 1.2 * transfer_rms(oracle, H, X_b[is_inlier])
+    assert result.inlier_ratio == pytest.approx(is_inlier.mean(), abs=0.005)
+    # Noise sigma 0.002 per axis: inlier RMS ~ 0.002 * sqrt(3).
+    assert 0.002 < result.rms < 0.005
+    assert result.extras["degenerate_samples"] < result.extras["hypotheses"]
+
+
+def test_ransac_is_deterministic_given_the_seed() -> None:
+    rng = np.random.default_rng(7)
+    H = near_identity_sl4(rng)
+    X_a, X_b, _ = frame_points(rng, H, outlier_fraction=0.3)
+    config = AlignmentConfig(max_points=2000)
+    first = estimate_sl4(X_a, X_b, config, seed=3)
+    second = estimate_sl4(X_a, X_b, config, seed=3)
+    np.testing.assert_array_equal(first.H, second.H)
+    np.testing.assert_array_equal(first.inliers, second.inliers)
+    assert first.extras["degenerate_samples"] == second.extras["degenerate_samples"]
+    other = estimate_sl4(X_a, X_b, AlignmentConfig(max_points=2000, seed=1), seed=3)
+    assert np.abs(other.H - H).max() < 1e-3
+
+
+def test_planar_points_fall_back_to_sim3() -> None:
+    rng = np.random.default_rng(8)
+    T_a_b = np.eye(4)
+    T_a_b[:3, :3] = 1.3 * rotation(rng, 0.4)
+    T_a_b[:3, 3] = [0.2, -0.1, 0.3]
+    X_b = np.column_stack([rng.uniform(-1, 1, 3000), rng.uniform(-1, 1, 3000), np.full(3000, 2.0)])
+    X_a = apply_transform(T_a_b, X_b)
+    result = estimate_sl4(X_a, X_b, AlignmentConfig(), seed=0)
+    assert result.model == "sim3"
+    assert "coplanar" in result.fallback
+    assert np.isfinite(result.H).all() and not np.allclose(result.H, np.eye(4))
+    np.testing.assert_allclose(result.H, T_a_b, atol=1e-9)
+    assert result.inliers.all()
+
+
+def test_coplanar_inliers_with_scattered_outliers_fall_back() -> None:
+    # The input is not flat (outliers fill a volume) but the consensus set is a plane.
+    rng = np.random.default_rng(9)
+    plane = np.column_stack([rng.uniform(-1, 1, 3000), rng.uniform(-1, 1, 3000), np.full(3000, 2.0)])
+    scattered = rng.uniform([-1, -1, 1], [1, 1, 3], size=(600, 3))
+    X_b = np.concatenate([plane, scattered])
+    X_a = X_b + [0.1, 0.0, 0.0]
+    X_a[3000:] += rng.normal(scale=0.3, size=(600, 3))
+    result = estimate_sl4(X_a, X_b, AlignmentConfig(), seed=0)
+    assert result.model == "sim3" and result.fallback is not None
+    assert np.isfinite(result.H).all()
+    np.testing.assert_allclose(result.H[:3, 3], [0.1, 0, 0], atol=1e-6)
+    assert result.inliers[:3000].all()
+
+
+def test_too_few_points_fall_back_or_raise() -> None:
+    rng = np.random.default_rng(10)
+    H = near_identity_sl4(rng)
+    X_b = points_in_front(rng, H, 20)
+    X_a = apply_transform(H, X_b)
+    result = estimate_sl4(X_a, X_b, AlignmentConfig(min_inliers=50), seed=0)
+    assert result.model == "sim3" and "20 correspondences" in result.fallback
+    X_a[2:] = np.nan
+    with pytest.raises(ValueError, match="at least 5 finite correspondences, got 2"):
+        estimate_sl4(X_a, X_b, AlignmentConfig(), seed=0)
+
+
+def test_non_finite_rows_are_dropped() -> None:
+    rng = np.random.default_rng(11)
+    H = near_identity_sl4(rng)
+    X_a, X_b, is_inlier = frame_points(rng, H, outlier_fraction=0.2)
+    X_a[::7, 1] = np.nan
+    X_b[3::11, 0] = np.inf
+    result = estimate_sl4(X_a, X_b, AlignmentConfig(), seed=0)
+    assert result.model == "sl4"
+    assert not result.inliers[::7].any() and not result.inliers[3::11].any()
+    finite = np.isfinite(X_a).all(1) & np.isfinite(X_b).all(1)
+    assert (result.inliers[finite] == is_inlier[finite]).mean() > 0.995
+    assert transfer_rms(result.H, H, X_b[finite & is_inlier]) < 2e-4
+    assert result.extras["dropped_nonfinite"] == len(np.unique(np.r_[np.arange(0, len(X_a), 7), np.arange(3, len(X_a), 11)]))
+
+
+def test_refit_improves_on_the_best_minimal_hypothesis() -> None:
+    rng = np.random.default_rng(12)
+    H = near_identity_sl4(rng)
+    X_a, X_b, is_inlier = frame_points(rng, H, outlier_fraction=0.3)
+    clean = X_b[is_inlier]
+    refit = estimate_sl4(X_a, X_b, AlignmentConfig(refit=True), seed=0)
+    plain = estimate_sl4(X_a, X_b, AlignmentConfig(refit=False), seed=0)
+    assert plain.model == refit.model == "sl4"
+    assert transfer_rms(refit.H, H, clean) < 0.5 * transfer_rms(plain.H, H, clean)
+    assert transfer_rms(refit.H, H, clean) < 2e-4
+
+
+def test_estimate_sim3_with_outliers() -> None:
+    rng = np.random.default_rng(13)
+    T_a_b = np.eye(4)
+    T_a_b[:3, :3] = 0.8 * rotation(rng, 1.0)
+    T_a_b[:3, 3] = [0.5, 0.2, -0.4]
+    X_a, X_b, is_inlier = frame_points(rng, T_a_b, outlier_fraction=0.4)
+    result = estimate_sim3(X_a, X_b, AlignmentConfig(), seed=0)
+    assert result.model == "sim3" and result.fallback is None
+    np.testing.assert_allclose(result.H, T_a_b, atol=1e-3)
+    assert (result.inliers == is_inlier).mean() > 0.995
+    with pytest.raises(ValueError, match="at least 3"):
+        estimate_sim3(X_a[:2], X_b[:2], AlignmentConfig())
+
+
+def test_sim3_from_shared_frame() -> None:
+    rng = np.random.default_rng(14)
+    # The shared frame's camera sits at different poses in the two submaps, and submap b's
+    # reconstruction is 0.6 times the scale of submap a's.
+    T_cam_a = se3_inverse(np.block([[rotation(rng, 1.0), rng.normal(size=(3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    T_cam_b = se3_inverse(np.block([[rotation(rng, 1.0), rng.normal(size=(3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    scale_b = 0.6
+    X_cam = rng.uniform([-1, -1, 0.5], [1, 1, 3], size=(500, 3))
+    X_a = apply_transform(se3_inverse(T_cam_a), X_cam)
+    X_b = apply_transform(se3_inverse(T_cam_b), X_cam * scale_b)
+    X_b[:100] *= 1.5  # a minority of bad depths does not move the median ratio
+    X_a[0] = np.nan
+    result = sim3_from_shared_frame(T_cam_a[:3], T_cam_b, X_a, X_b)
+    assert result.model == "sim3"
+    assert result.extras["scale"] == pytest.approx(1 / scale_b, rel=1e-12)
+    expected = se3_inverse(T_cam_a) @ np.diag([1 / scale_b] * 3 + [1]) @ T_cam_b
+    np.testing.assert_allclose(result.H, expected, atol=1e-12)
+    np.testing.assert_allclose(apply_transform(result.H, X_b[100:]), X_a[100:], atol=1e-9)
+    assert result.inliers[100:].all() and not result.inliers[:100].any()
+    assert result.inlier_ratio == pytest.approx(0.8)

@@ -1,0 +1,297 @@
+"""Factor-graph backends (SL(4) and Sim(3)) against exact ground truth."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gtsam
+import numpy as np
+import pytest
+from scipy.linalg import expm, logm
+from scipy.spatial.transform import Rotation
+
+from sl4slam.backend import Backend, Sim3Backend, SL4Backend, make_backend
+from sl4slam.config import BackendConfig
+from sl4slam.errors import UserError
+
+NUM_SUBMAPS = 21  # node 0 plus 20 odometry steps
+
+
+# ---------------------------------------------------------------------------- helpers
+def sl4_basis() -> np.ndarray:
+    """(15, 4, 4) orthonormal basis of sl(4), in GTSAM's coordinate order (rotations, shears, diagonals)."""
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    basis = []
+    for sign in (-1.0, 1.0):  # skew-symmetric, then symmetric off-diagonal
+        for i, j in pairs:
+            B = np.zeros((4, 4))
+            B[i, j], B[j, i] = 1.0, sign
+            basis.append(B / np.sqrt(2.0))
+    for diagonal in ([1, -1, 0, 0], [1, 1, -2, 0], [1, 1, 1, -3]):
+        d = np.array(diagonal, dtype=np.float64)
+        basis.append(np.diag(d / np.linalg.norm(d)))
+    return np.stack(basis)
+
+
+SL4_BASIS = sl4_basis()
+
+
+def sl4_coordinates(A: np.ndarray) -> np.ndarray:
+    """Coordinates (15,) of a 4x4 matrix's traceless part in :data:`SL4_BASIS`."""
+    return np.einsum("kij,ij->k", SL4_BASIS, A)
+
+
+def sl4_exp(xi: np.ndarray) -> np.ndarray:
+    return expm(np.einsum("k,kij->ij", xi, SL4_BASIS))
+
+
+def sl4_log(H: np.ndarray) -> np.ndarray:
+    return sl4_coordinates(np.real(logm(H)))
+
+
+def random_sl4(rng: np.random.Generator, scale: float) -> np.ndarray:
+    return sl4_exp(rng.normal(scale=scale, size=15))
+
+
+def random_sim3(rng: np.random.Generator, rot: float, trans: float, log_scale: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = np.exp(rng.normal(scale=log_scale)) * Rotation.from_rotvec(rng.normal(scale=rot, size=3)).as_matrix()
+    T[:3, 3] = rng.normal(scale=trans, size=3)
+    return T
+
+
+def chain(steps: list[np.ndarray]) -> list[np.ndarray]:
+    """Ground-truth nodes ``H_world_k`` from relative steps ``H_{k-1}_k``."""
+    nodes = [np.eye(4)]
+    for step in steps:
+        nodes.append(nodes[-1] @ step)
+    return nodes
+
+
+def run(backend: Backend, odometry: list[np.ndarray], loops: list[tuple[int, int, np.ndarray]]) -> dict[int, np.ndarray]:
+    """Feed the chain one submap at a time; each loop is added together with its newest node."""
+    backend.add_submap(0, None)
+    backend.update()
+    for k, H_prev_cur in enumerate(odometry, start=1):
+        backend.add_submap(k, H_prev_cur)
+        for i, j, H_i_j in loops:
+            if max(i, j) == k:
+                backend.add_loop(i, j, H_i_j)
+        backend.update()
+    return backend.estimates()
+
+
+def map_error(estimates: dict[int, np.ndarray], truth: list[np.ndarray]) -> float:
+    """Mean Frobenius distance between estimated and true nodes."""
+    return float(np.mean([np.linalg.norm(estimates[k] - truth[k]) for k in range(len(truth))]))
+
+
+def sl4_problem(seed: int, odometry_noise: float):
+    rng = np.random.default_rng(seed)
+    steps = [random_sl4(rng, 0.08) for _ in range(NUM_SUBMAPS - 1)]
+    truth = chain(steps)
+    odometry = [step @ random_sl4(rng, odometry_noise) for step in steps]
+    return truth, odometry
+
+
+# ---------------------------------------------------------------------------- residual convention
+def test_sl4_factor_residual_is_the_papers():
+    """GTSAM's error on our factor is -Log(H_world_i^-1 H_world_j H_i_j^-1), to second order."""
+    rng = np.random.default_rng(0)
+    backend = SL4Backend(BackendConfig(sigma=1.0))
+    H_i_j = random_sl4(rng, 0.6)  # far from the identity, so the factor's orientation matters
+    H_world_i = random_sl4(rng, 0.3)
+    delta = rng.normal(size=15)
+    delta *= 1e-3 / np.linalg.norm(delta)
+    H_world_j = H_world_i @ sl4_exp(delta) @ H_i_j  # so that Log(E) = delta
+    values = gtsam.Values()
+    values.insert(backend.key(3), gtsam.SL4(H_world_i))
+    values.insert(backend.key(7), gtsam.SL4(H_world_j))
+
+    error = backend.relative_factor(3, 7, H_i_j, gtsam.noiseModel.Unit.Create(15)).unwhitenedError(values)
+
+    E = np.linalg.inv(H_world_i) @ H_world_j @ np.linalg.inv(H_i_j)
+    paper_residual = sl4_log(E)
+    np.testing.assert_allclose(paper_residual, delta, atol=1e-12)
+    # GTSAM's SL4 chart is first order: exactly Vee(E^-1 - I) ...
+    np.testing.assert_allclose(error, sl4_coordinates(np.linalg.inv(E) - np.eye(4)), atol=1e-12)
+    # ... which is -Log(E) up to O(|delta|^2).
+    assert np.linalg.norm(-error - paper_residual) < 2 * np.linalg.norm(delta) ** 2
+    # The naive orientation (i, j, H_i_j) conjugates the residual by H_i_j: first-order different.
+    naive = gtsam.BetweenFactorSL4(backend.key(3), backend.key(7), gtsam.SL4(H_i_j), gtsam.noiseModel.Unit.Create(15))
+    assert np.linalg.norm(naive.unwhitenedError(values) - paper_residual) > 0.2 * np.linalg.norm(delta)
+
+
+def test_sim3_factor_residual_is_the_papers_exactly():
+    rng = np.random.default_rng(1)
+    backend = Sim3Backend(BackendConfig(sigma=1.0))
+    H_i_j = random_sim3(rng, 0.5, 2.0, 0.3)
+    H_world_i = random_sim3(rng, 0.5, 2.0, 0.3)
+    H_world_j = random_sim3(rng, 0.5, 2.0, 0.3)
+    values = gtsam.Values()
+    values.insert(backend.key(0), backend._to_gtsam(H_world_i))
+    values.insert(backend.key(1), backend._to_gtsam(H_world_j))
+
+    error = backend.relative_factor(0, 1, H_i_j, gtsam.noiseModel.Unit.Create(7)).unwhitenedError(values)
+
+    E = np.linalg.inv(H_world_i) @ H_world_j @ np.linalg.inv(H_i_j)
+    # exp of the negated error in GTSAM's Sim(3) algebra must give back E (GTSAM's matrix of a
+    # similarity is [R t/s; 0 1/s], the same projective map as [sR t; 0 1]).
+    exp_residual = expm(gtsam.Similarity3.Hat(-error))
+    np.testing.assert_allclose(exp_residual / exp_residual[3, 3], E, atol=1e-9)
+
+
+def test_sim3_conversion_is_exact():
+    rng = np.random.default_rng(2)
+    T = random_sim3(rng, 1.0, 3.0, 0.5)
+    backend = Sim3Backend(BackendConfig())
+    S = backend._to_gtsam(T)
+    np.testing.assert_allclose(backend._from_gtsam(S), T, atol=1e-13)
+    point = rng.normal(size=3)
+    np.testing.assert_allclose(S.transformFrom(point), T[:3, :3] @ point + T[:3, 3], atol=1e-13)
+
+
+# ---------------------------------------------------------------------------- optimization
+@pytest.mark.parametrize("kind", ["sl4", "sim3"])
+def test_noise_free_measurements_are_reproduced(kind):
+    rng = np.random.default_rng(3)
+    if kind == "sl4":
+        steps = [random_sl4(rng, 0.1) for _ in range(NUM_SUBMAPS - 1)]
+    else:
+        steps = [random_sim3(rng, 0.2, 0.5, 0.05) for _ in range(NUM_SUBMAPS - 1)]
+    truth = chain(steps)
+    loops = [(2, 20, np.linalg.inv(truth[2]) @ truth[20]), (15, 9, np.linalg.inv(truth[15]) @ truth[9])]
+    estimates = run(make_backend(BackendConfig(kind=kind)), steps, loops)
+    assert sorted(estimates) == list(range(NUM_SUBMAPS))
+    for k, H in estimates.items():
+        assert H.dtype == np.float64 and H.shape == (4, 4)
+        np.testing.assert_allclose(H, truth[k], atol=1e-6)
+        if kind == "sl4":
+            assert np.linalg.det(H) == pytest.approx(1.0, abs=1e-9)
+        else:
+            np.testing.assert_array_equal(H[3], [0.0, 0.0, 0.0, 1.0])
+
+
+def test_loop_closure_reduces_sl4_drift():
+    truth, odometry = sl4_problem(seed=4, odometry_noise=0.02)
+    loop = [(0, 20, np.linalg.inv(truth[0]) @ truth[20])]
+    without = run(SL4Backend(BackendConfig()), odometry, [])
+    backend = SL4Backend(BackendConfig())
+    with_loop = run(backend, odometry, loop)
+    error_without, error_with = map_error(without, truth), map_error(with_loop, truth)
+    assert error_with < 0.6 * error_without
+    # The loop was absorbed: the last node moved most of the way to the truth.
+    assert np.linalg.norm(with_loop[20] - truth[20]) < 0.3 * np.linalg.norm(without[20] - truth[20])
+    assert backend.last_update_seconds > 0.0 and backend.num_loops == 1
+    # ... and fully: batch Levenberg-Marquardt on the same graph from the odometry guess agrees.
+    graph, initial = backend.factor_graph(), gtsam.Values()
+    for k, H in without.items():
+        initial.insert(backend.key(k), gtsam.SL4(H))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-14)
+    params.setAbsoluteErrorTol(1e-15)
+    params.setMaxIterations(200)
+    batch = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    assert graph.error(backend.gtsam_values()) == pytest.approx(graph.error(batch), rel=1e-5)
+    for k in with_loop:
+        np.testing.assert_allclose(with_loop[k], batch.atSL4(backend.key(k)).matrix(), atol=1e-4)
+    # the single-node read agrees with the full estimate
+    for k in (0, 10, 20):
+        np.testing.assert_allclose(backend.H_world_submap(k), with_loop[k], atol=1e-8)
+
+
+def test_sim3_loop_corrects_scale_drift():
+    rng = np.random.default_rng(5)
+    steps = [random_sim3(rng, 0.1, 1.0, 0.0) for _ in range(NUM_SUBMAPS - 1)]  # true scale 1 throughout
+    truth = chain(steps)
+    drift = np.diag([1.03, 1.03, 1.03, 1.0])  # every odometry step overestimates scale by 3 %
+    odometry = [step @ drift for step in steps]
+    loop = [(0, 20, np.linalg.inv(truth[0]) @ truth[20])]
+
+    def scale(T):
+        return float(np.cbrt(np.linalg.det(T[:3, :3])))
+
+    without = run(Sim3Backend(BackendConfig()), odometry, [])
+    with_loop = run(Sim3Backend(BackendConfig()), odometry, loop)
+    assert scale(without[20]) == pytest.approx(1.03**20, rel=1e-9)
+    assert abs(np.log(scale(with_loop[20]))) < 0.1 * abs(np.log(scale(without[20])))
+    assert map_error(with_loop, truth) < 0.5 * map_error(without, truth)
+
+
+def test_cauchy_kernel_resists_a_false_loop():
+    truth, odometry = sl4_problem(seed=6, odometry_noise=0.005)
+    rng = np.random.default_rng(7)
+    false_loop = [(3, 17, random_sl4(rng, 0.5))]  # unrelated to the true H_3_17
+    reference = run(SL4Backend(BackendConfig()), odometry, [])
+
+    def displacement(kernel: str) -> float:
+        estimates = run(SL4Backend(BackendConfig(loop_kernel=kernel)), odometry, false_loop)
+        return float(np.mean([np.linalg.norm(estimates[k] - reference[k]) for k in reference]))
+
+    moved_plain, moved_huber, moved_cauchy = displacement("none"), displacement("huber"), displacement("cauchy")
+    assert moved_cauchy < 0.2 * moved_plain
+    assert moved_huber < moved_plain
+
+
+# ---------------------------------------------------------------------------- guards and bookkeeping
+@pytest.mark.parametrize("kind", ["sl4", "sim3"])
+def test_invalid_inputs_are_refused(kind):
+    backend = make_backend(BackendConfig(kind=kind))
+    backend.add_submap(0, None)
+    reflection = np.diag([-1.0, 1.0, 1.0, 1.0])  # det = -1: no SL(4) or Sim(3) representative
+    not_finite = np.eye(4)
+    not_finite[0, 3] = np.nan
+    for bad in (reflection, not_finite, np.zeros((4, 4)), np.eye(3)):
+        with pytest.raises(ValueError):
+            backend.add_submap(1, bad)
+    assert backend.num_submaps == 1
+    backend.add_submap(1, np.eye(4))
+    with pytest.raises(ValueError):
+        backend.add_loop(0, 1, reflection)
+    with pytest.raises(ValueError):
+        backend.add_loop(0, 5, np.eye(4))  # unknown submap
+    with pytest.raises(ValueError):
+        backend.add_submap(1, np.eye(4))  # duplicate id
+    with pytest.raises(ValueError):
+        backend.add_submap(2, None)  # only the first submap takes None
+    assert backend.num_loops == 0
+    backend.update()
+    np.testing.assert_allclose(backend.H_world_submap(1), np.eye(4), atol=1e-9)
+
+
+def test_sim3_refuses_non_similarity():
+    backend = Sim3Backend(BackendConfig())
+    backend.add_submap(0, None)
+    shear = np.eye(4)
+    shear[0, 1] = 0.3
+    projective = np.eye(4)
+    projective[3, 0] = 0.1
+    for bad in (shear, projective):
+        with pytest.raises(ValueError):
+            backend.add_submap(1, bad)
+
+
+def test_sl4_scales_input_to_unit_determinant():
+    backend = SL4Backend(BackendConfig())
+    backend.add_submap(0, None)
+    step = random_sl4(np.random.default_rng(8), 0.1)
+    backend.add_submap(1, 3.0 * step)  # projectively the same map
+    np.testing.assert_allclose(backend.H_world_submap(1), step, atol=1e-12)  # guess before update
+    backend.update()
+    np.testing.assert_allclose(backend.H_world_submap(1), step, atol=1e-9)
+
+
+def test_pure_odometry_update_does_not_iterate():
+    backend = SL4Backend(BackendConfig())
+    _, odometry = sl4_problem(seed=9, odometry_noise=0.02)
+    run(backend, odometry, [])
+    assert backend.last_update_iterations == 1
+    assert backend.num_updates == NUM_SUBMAPS
+
+
+def test_make_backend_checks_config():
+    assert isinstance(make_backend(BackendConfig(kind="sim3")), Sim3Backend)
+    assert isinstance(make_backend(BackendConfig()), Backend)
+    for bad in (dict(kind="se3"), dict(loop_kernel="tukey"), dict(sigma=0.0), dict(loop_kernel_width=-1.0)):
+        with pytest.raises(UserError):
+            make_backend(dataclasses.replace(BackendConfig(), **bad))

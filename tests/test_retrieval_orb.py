@@ -1,0 +1,201 @@
+"""Weights-free ORB loop-closure retrieval."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from sl4slam.config import RetrievalConfig
+from sl4slam.errors import UserError
+from sl4slam.retrieval.orb import OrbRetrieval, match_descriptors
+from sl4slam.types import LoopCandidate, Retrieval
+
+DISTRACTOR_BASE = 1000
+
+
+@pytest.fixture(scope="module")
+def tum(shared_dir) -> list[np.ndarray]:
+    """The 37 RGB frames of the real TUM fr1_xyz excerpt, ``(480, 640, 3)`` uint8 each."""
+    root = shared_dir / "data/tum_rgbd_fr1_xyz_first37"
+    lines = [line.split() for line in (root / "rgb.txt").read_text().splitlines()]
+    paths = [root / fields[1] for fields in lines if fields and not fields[0].startswith("#")]
+    return [cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB) for path in paths]
+
+
+def random_texture(seed: int, shape=(480, 640, 3)) -> np.ndarray:
+    """Seeded multi-scale random texture: many ORB features, no relation to any other image."""
+    rng = np.random.default_rng(seed)
+    texture = np.zeros(shape, np.float32)
+    for sigma in (1.0, 3.0, 8.0):
+        layer = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma)
+        texture += layer / layer.std()
+    return np.clip(128 + 30 * texture, 0, 255).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def distractors() -> list[np.ndarray]:
+    return [random_texture(seed) for seed in range(6)]
+
+
+def mild_warp(image: np.ndarray) -> np.ndarray:
+    """``image`` seen under a mild homography (rotation 4 deg, scale 0.93, shift, slight perspective)."""
+    height, width = image.shape[:2]
+    rotation = cv2.getRotationMatrix2D((width / 2, height / 2), 4.0, 0.93)
+    homography = np.vstack([rotation, [2e-5, -1e-5, 1.0]])
+    homography[:2, 2] += (12.0, -7.0)
+    return cv2.warpPerspective(image, homography, (width, height), borderMode=cv2.BORDER_REFLECT)
+
+
+def test_is_a_retrieval():
+    retrieval = OrbRetrieval(RetrievalConfig())
+    assert isinstance(retrieval, Retrieval)
+    assert retrieval.name == "orb"
+    assert len(retrieval) == 0
+    assert retrieval.query([0], [random_texture(0)], submap_id=10, max_results=1) == []
+
+
+def test_match_descriptors_finds_planted_pairs():
+    rng = np.random.default_rng(4)
+    stored = rng.integers(0, 256, (50, 32), dtype=np.uint8)
+    permutation = rng.permutation(50)[:20]
+    query = np.concatenate([stored[permutation], rng.integers(0, 256, (10, 32), dtype=np.uint8)])
+    query[:20, 0] ^= 0b00000111  # 3 flipped bits: still a clear nearest neighbour
+    query_idx, stored_idx = match_descriptors(query, stored, ratio=0.8, max_hamming=64)
+    # The 10 unrelated descriptors (~128 bits from everything) fail the ratio test and the bound.
+    np.testing.assert_array_equal(query_idx, np.arange(20))
+    np.testing.assert_array_equal(stored_idx, permutation)
+
+
+def test_match_descriptors_drops_ambiguous_claims():
+    rng = np.random.default_rng(5)
+    stored = rng.integers(0, 256, (30, 32), dtype=np.uint8)
+    query = stored[[3, 3, 7]].copy()  # two query descriptors claim stored 3
+    query[1, 5] ^= 0b1
+    query_idx, stored_idx = match_descriptors(query, stored, ratio=0.8, max_hamming=64)
+    np.testing.assert_array_equal(query_idx, [2])
+    np.testing.assert_array_equal(stored_idx, [7])
+    # The Hamming search is exact: the nearest neighbour of an exact copy is itself.
+    query_idx, stored_idx = match_descriptors(stored, stored, ratio=0.8, max_hamming=0)
+    np.testing.assert_array_equal(stored_idx, np.arange(30))
+
+
+def test_extracted_features_are_compact(tum):
+    retrieval = OrbRetrieval(RetrievalConfig(orb_features=500))
+    features = retrieval.extract(tum[0])
+    assert 400 <= len(features) <= 500
+    assert features.keypoints.dtype == np.float32 and features.keypoints.shape == (len(features), 2)
+    assert features.descriptors.dtype == np.uint8 and features.descriptors.shape == (len(features), 32)
+    assert features.word_tf.sum() == pytest.approx(1.0, abs=1e-5)
+    assert np.all(np.diff(features.word_ids) > 0)
+    # Large inputs are processed at the working resolution.
+    big = cv2.resize(tum[0], (1280, 960))
+    assert retrieval.extract(big).keypoints.max(axis=0)[0] < 640
+
+
+def test_revisit_is_found(tum, distractors):
+    config = RetrievalConfig()
+    retrieval = OrbRetrieval(config)
+    retrieval.add([0], [tum[0]], submap_id=0)
+    retrieval.add(list(range(DISTRACTOR_BASE, DISTRACTOR_BASE + 3)), distractors[:3], submap_id=0)
+    retrieval.add(list(range(DISTRACTOR_BASE + 3, DISTRACTOR_BASE + 6)), distractors[3:], submap_id=1)
+    assert len(retrieval) == 7
+    for query_frame in (3, 20):
+        found = retrieval.query([query_frame], [tum[query_frame]], submap_id=3, max_results=1)
+        assert len(found) == 1
+        candidate = found[0]
+        assert (candidate.query_frame, candidate.match_frame, candidate.match_submap) == (query_frame, 0, 0)
+        assert 0.0 <= candidate.distance < 1.0 - config.orb_min_inliers / config.orb_features
+    # A nearer view verifies more matches, so it is closer.
+    near = retrieval.query([3], [tum[3]], submap_id=3, max_results=1)[0]
+    far = retrieval.query([20], [tum[20]], submap_id=3, max_results=1)[0]
+    assert near.distance < far.distance
+
+
+def test_warped_copy_is_found(tum, distractors):
+    retrieval = OrbRetrieval(RetrievalConfig())
+    retrieval.add([DISTRACTOR_BASE, DISTRACTOR_BASE + 1], distractors[:2], submap_id=0)
+    retrieval.add([0], [tum[0]], submap_id=1)
+    found = retrieval.query([99], [mild_warp(tum[0])], submap_id=5, max_results=3)
+    assert [(c.query_frame, c.match_frame, c.match_submap) for c in found] == [(99, 0, 1)]
+
+
+def test_unrelated_images_are_rejected(tum, distractors):
+    retrieval = OrbRetrieval(RetrievalConfig())
+    retrieval.add([0, 18, 36], [tum[0], tum[18], tum[36]], submap_id=0)
+    retrieval.add(list(range(DISTRACTOR_BASE, DISTRACTOR_BASE + 4)), distractors[:4], submap_id=1)
+    unrelated = distractors[4:] + [random_texture(100, (600, 500, 3))]
+    for offset, image in enumerate(unrelated):
+        assert retrieval.query([2000 + offset], [image], submap_id=9, max_results=5) == []
+    # Same texture statistics, different content: the verification sees almost nothing.
+    query_features = retrieval.extract(distractors[5])
+    inliers = [retrieval.verify(query_features, position) for position in range(len(retrieval))]
+    assert max(inliers) < RetrievalConfig().orb_min_inliers // 2
+    # A TUM frame is not matched to a texture database.
+    textures_only = OrbRetrieval(RetrievalConfig())
+    textures_only.add(list(range(DISTRACTOR_BASE, DISTRACTOR_BASE + 6)), distractors, submap_id=0)
+    assert textures_only.query([3], [tum[3]], submap_id=9, max_results=5) == []
+
+
+def test_unrelated_natural_image_is_rejected(tum):
+    cbook = pytest.importorskip("matplotlib.cbook")
+    try:
+        with cbook.get_sample_data("grace_hopper.jpg") as handle:
+            data = np.frombuffer(handle.read(), np.uint8)
+    except (OSError, ValueError):
+        pytest.skip("matplotlib sample image absent")
+    portrait = cv2.cvtColor(cv2.imdecode(data, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    retrieval = OrbRetrieval(RetrievalConfig())
+    retrieval.add([0, 18, 36], [tum[0], tum[18], tum[36]], submap_id=0)
+    assert retrieval.query([500], [portrait], submap_id=9, max_results=5) == []
+    retrieval.add([500], [portrait], submap_id=1)
+    assert retrieval.query([3], [tum[3]], submap_id=9, max_results=5)[0].match_frame == 0
+
+
+def test_tau_interval_excludes_recent_submaps(tum):
+    retrieval = OrbRetrieval(RetrievalConfig(tau_interval=2))
+    retrieval.add([0], [tum[0]], submap_id=1)
+    # Submap 1 is eligible from submap 4 on: 1 <= submap_id - 1 - 2.
+    for submap_id in (1, 2, 3):
+        assert retrieval.query([3], [tum[3]], submap_id=submap_id, max_results=1) == []
+    assert retrieval.query([3], [tum[3]], submap_id=4, max_results=1)[0].match_frame == 0
+
+    no_gap = OrbRetrieval(RetrievalConfig(tau_interval=0))
+    no_gap.add([0], [tum[0]], submap_id=1)
+    assert no_gap.query([3], [tum[3]], submap_id=1, max_results=1) == []
+    assert no_gap.query([3], [tum[3]], submap_id=2, max_results=1)[0].match_submap == 1
+
+
+def test_results_are_sorted_truncated_and_deterministic(tum, distractors):
+    def run() -> tuple[list[LoopCandidate], list[LoopCandidate]]:
+        retrieval = OrbRetrieval(RetrievalConfig(), seed=5)
+        retrieval.add([0, DISTRACTOR_BASE], [tum[0], distractors[0]], submap_id=0)
+        retrieval.add([12, DISTRACTOR_BASE + 1], [tum[12], distractors[1]], submap_id=1)
+        queries = [30, 2, 24, DISTRACTOR_BASE + 2]
+        images = [tum[30], tum[2], tum[24], distractors[2]]
+        every = retrieval.query(queries, images, submap_id=4, max_results=10)
+        best_two = retrieval.query(queries, images, submap_id=4, max_results=2)
+        retrieval.add(queries, images, submap_id=4)  # reuses the query's features
+        assert len(retrieval) == 8
+        return every, best_two
+
+    every, best_two = run()
+    assert sorted(c.query_frame for c in every) == [2, 24, 30]  # one candidate per matched query; none for the texture
+    assert [c.distance for c in every] == sorted(c.distance for c in every)
+    assert best_two == every[:2]
+    assert every[0].query_frame == 2 and every[0].match_frame == 0  # two frames apart: the strongest
+    assert {c.match_frame for c in every} <= {0, 12}
+    assert run() == (every, best_two)
+    retrieval = OrbRetrieval(RetrievalConfig())
+    retrieval.add([0], [tum[0]], submap_id=0)
+    assert retrieval.query([2], [tum[2]], submap_id=4, max_results=0) == []
+
+
+def test_bad_input_is_a_user_error(tum):
+    retrieval = OrbRetrieval(RetrievalConfig())
+    with pytest.raises(UserError):
+        retrieval.add([0, 1], [tum[0]], submap_id=0)
+    with pytest.raises(UserError):
+        retrieval.add([0], [tum[0].astype(np.float32)], submap_id=0)
+    with pytest.raises(UserError):
+        OrbRetrieval(RetrievalConfig(orb_candidates=0))

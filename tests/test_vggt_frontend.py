@@ -1,0 +1,145 @@
+"""The VGGT frontend: preprocessing, model call and outputs in the pipeline's shapes and frames."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from sl4slam.config import VGGTConfig
+from sl4slam.errors import MissingWeightsError, UserError
+from sl4slam.frontend.vggt import VGGTFrontend, resolve_compute_dtype, resolve_device
+from sl4slam.models.vggt.model import VGGT, VGGTModelConfig, init_random_weights
+from sl4slam.models.vggt.pose_encoding import pose_encoding_to_extri_intri
+from sl4slam.models.vggt.preprocess import preprocess_images, to_uint8_rgb
+from sl4slam.models.vggt.weights import load_vggt, save_checkpoint
+from sl4slam.types import Frame, Frontend, SubmapPrediction
+
+# A small model for pipeline tests; img_size 518 so the position embedding is resized as in VGGT-1B.
+SMALL_CONFIG = VGGTModelConfig(
+    embed_dim=32, depth=4, num_heads=2, patch_embed_depth=1, patch_embed_num_heads=2,
+    camera_trunk_depth=1, camera_num_heads=2, dpt_features=8, dpt_out_channels=[8, 8, 8, 8], dpt_layers=[0, 1, 2, 3],
+)
+
+
+def make_random_checkpoint(path: Path, config: VGGTModelConfig = SMALL_CONFIG, seed: int = 0) -> Path:
+    """A random-weight VGGT checkpoint whose camera head predicts plausible cameras.
+
+    The pose branch's last layer is shrunk and biased towards the identity rotation (w = 1) and a
+    60-degree field of view, so decoded intrinsics are finite and positive as a trained model's are.
+    """
+    torch.manual_seed(seed)
+    model = init_random_weights(VGGT(config), seed=seed)
+    with torch.no_grad():
+        last = model.camera_head.pose_branch.fc2
+        last.weight.mul_(0.01)
+        # The camera head adds its four iterations' outputs: a quarter of the target per iteration.
+        last.bias.copy_(torch.tensor([0, 0, 0, 0, 0, 0, 1.0, 1.05, 1.3]) / 4)
+    return save_checkpoint(model.state_dict(), path, config)
+
+
+def _frames(num: int, height: int = 96, width: int = 128, seed: int = 0) -> list[Frame]:
+    rng = np.random.default_rng(seed)
+    return [Frame(index=i, timestamp=float(i), rgb=rng.integers(0, 256, (height, width, 3), dtype=np.uint8)) for i in range(num)]
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory) -> VGGT:
+    path = make_random_checkpoint(tmp_path_factory.mktemp("weights") / "small.safetensors")
+    return load_vggt(str(path))
+
+
+def test_reconstruct_returns_the_model_outputs_on_its_grid(tiny_model):
+    frontend = VGGTFrontend(VGGTConfig(device="cpu"), model=tiny_model, with_points=True)
+    assert isinstance(frontend, Frontend) and frontend.name == "vggt"
+    frames = _frames(3, height=48, width=128)
+    prediction = frontend.reconstruct(frames, submap_id=0)
+    assert isinstance(prediction, SubmapPrediction) and prediction.num_frames == 3
+    grid = (196, 518)  # 48x128 -> width 518, height round(194.25 / 14) * 14
+    assert prediction.depth.shape == prediction.confidence.shape == (3, *grid)
+    assert prediction.depth.dtype == prediction.confidence.dtype == np.float32
+    assert prediction.T_cam_submap.shape == (3, 3, 4) and prediction.T_cam_submap.dtype == np.float64
+    assert prediction.K.shape == (3, 3, 3) and prediction.K.dtype == np.float64
+    assert prediction.colors.shape == (3, *grid, 3) and prediction.colors.dtype == np.uint8
+    assert prediction.points.shape == (3, *grid, 3) and prediction.points_confidence.shape == (3, *grid)
+    assert np.all(prediction.confidence >= 1) and np.all(prediction.depth > 0)
+
+    # Exactly what the model gives for the preprocessed images, decoded on the grid.
+    images, _ = preprocess_images([f.rgb for f in frames], mode="crop")
+    np.testing.assert_array_equal(prediction.colors, to_uint8_rgb(images))
+    with torch.inference_mode():
+        raw = tiny_model(images)
+    np.testing.assert_allclose(prediction.depth, raw["depth"][0, ..., 0].numpy(), rtol=1e-6, atol=0)
+    np.testing.assert_allclose(prediction.points, raw["world_points"][0].numpy(), rtol=1e-6, atol=0)
+    extrinsics, intrinsics = pose_encoding_to_extri_intri(raw["pose_enc"][0].double(), grid)
+    np.testing.assert_allclose(prediction.T_cam_submap, extrinsics.numpy(), atol=1e-6)
+    np.testing.assert_allclose(prediction.K, intrinsics.numpy(), rtol=1e-6)
+    np.testing.assert_array_equal(prediction.K[:, :2, 2], np.tile([259.0, 98.0], (3, 1)))
+
+    # The resize is recorded per frame.
+    assert len(frontend.last_transforms) == 3
+    transform = frontend.last_transforms[0]
+    assert transform.input_hw == (48, 128) and transform.output_hw == grid
+    assert transform.scale_x == pytest.approx(518 / 128) and transform.scale_y == pytest.approx(196 / 48)
+
+
+def test_pad_mode_and_no_points(tiny_model):
+    frontend = VGGTFrontend(VGGTConfig(device="cpu", preprocess_mode="pad"), model=tiny_model)
+    prediction = frontend.reconstruct(_frames(2, height=128, width=96), submap_id=3)
+    assert prediction.depth.shape == (2, 518, 518) and prediction.points is None
+    # Portrait 96x128 -> 392x518, centred with 63 white columns each side.
+    assert frontend.last_transforms[0].valid_box == (63, 0, 455, 518)
+    assert np.all(prediction.colors[:, :, :63] == 255)
+
+
+def test_weights_are_loaded_from_a_file_on_first_use(tmp_path):
+    path = make_random_checkpoint(tmp_path / "small.safetensors")
+    frontend = VGGTFrontend(VGGTConfig(device="cpu", weights=str(path)))
+    assert frontend._model is None  # nothing loaded before the first submap
+    prediction = frontend.reconstruct(_frames(2, height=48), submap_id=0)
+    assert frontend.model.config == SMALL_CONFIG
+    assert np.all(np.isfinite(prediction.K)) and np.all(prediction.K[:, 0, 0] > 0)
+    # The biased camera head gives near-identity rotations and a ~60 degree field of view.
+    np.testing.assert_allclose(prediction.T_cam_submap[:, :, :3], np.tile(np.eye(3), (2, 1, 1)), atol=0.2)
+
+
+def test_missing_weights_fail_with_instructions(tmp_path):
+    frontend = VGGTFrontend(VGGTConfig(device="cpu", weights=str(tmp_path / "model.pt")))
+    with pytest.raises(MissingWeightsError, match="--weights PATH"):
+        frontend.reconstruct(_frames(2), submap_id=0)
+
+
+def test_device_and_dtype_resolution():
+    cpu = torch.device("cpu")
+    assert resolve_device("cpu") == cpu
+    assert resolve_compute_dtype("auto", cpu) == torch.float32
+    assert resolve_compute_dtype("bf16", cpu) == torch.bfloat16
+    assert resolve_compute_dtype("fp16", torch.device("cuda")) == torch.float16
+    with pytest.raises(UserError):
+        resolve_compute_dtype("int8", cpu)
+    with pytest.raises(UserError):
+        VGGTFrontend(VGGTConfig(device="cpu", preprocess_mode="stretch"))
+    if not torch.cuda.is_available():
+        with pytest.raises(UserError, match="no CUDA"):
+            resolve_device("cuda")
+
+
+def test_cli_runs_end_to_end_with_a_random_checkpoint(tmp_path):
+    synthetic = pytest.importorskip("sl4slam.synthetic")
+    if not hasattr(synthetic, "write_synthetic_sequence"):
+        pytest.skip("the synthetic world writer is not available")
+    from sl4slam.cli import main
+
+    weights = make_random_checkpoint(tmp_path / "vggt_small.safetensors")
+    source = tmp_path / "world"
+    assert main(["synth", "--out", str(source), "--frames", "30", "--width", "128", "--height", "96"]) == 0
+    out = tmp_path / "run"
+    code = main(["run", str(source), "--out", str(out), "--frontend", "vggt", "--weights", str(weights),
+                 "--device", "cpu", "--submap-size", "4", "--quiet"])
+    assert code == 0
+    assert (out / "summary.json").is_file()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["counts"]["submaps"] >= 1
