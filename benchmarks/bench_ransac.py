@@ -14,7 +14,7 @@ Errors are against the true H: RMS transfer error over the clean points (``|H_es
 H_true X_b|``, in submap units) and the largest entry difference of the SL(4)-normalized
 matrices. Writes ``benchmarks/results/ransac.md``.
 
-    python benchmarks/bench_ransac.py [--repeats 3] [--scenes 3]
+    python benchmarks/bench_ransac.py [--repeats 3] [--scenes 2]
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def errors(H_est: np.ndarray, H_true: np.ndarray, X_b_clean: np.ndarray) -> tupl
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3, help="timed runs of each estimator per scene")
-    parser.add_argument("--scenes", type=int, default=3, help="random scenes per outlier level")
+    parser.add_argument("--scenes", type=int, default=2, help="random scenes per outlier level")
     parser.add_argument("--outliers", type=float, nargs="+", default=[0.2, 0.4], help="clustered outlier fractions")
     args = parser.parse_args()
     config = AlignmentConfig()

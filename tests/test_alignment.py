@@ -294,3 +294,17 @@ def test_sim3_from_shared_frame() -> None:
     np.testing.assert_allclose(apply_transform(result.H, X_b[100:]), X_a[100:], atol=1e-9)
     assert result.inliers[100:].all() and not result.inliers[:100].any()
     assert result.inlier_ratio == pytest.approx(0.8)
+
+
+def test_points_mapped_through_infinity_are_outliers() -> None:
+    from sl4slam.alignment.ransac import score_one
+
+    H = np.eye(4)
+    H[3, 2] = -0.5  # w = 1 - z / 2: points with z >= 2 go through the plane at infinity
+    X_b = np.array([[0.0, 0.0, 1.0], [0.1, 0.2, 3.0], [0.0, 0.0, 2.0]])
+    # Even a target that equals the projectively mapped point does not count behind infinity.
+    X_a = np.array([[0.0, 0.0, 2.0], [-0.2, -0.4, -6.0], [0.0, 0.0, 0.0]])
+    cost, inliers, r2 = score_one(H, X_a, X_b, 0.01)
+    assert inliers.tolist() == [True, False, False]
+    assert r2[0] == pytest.approx(0.0)
+    assert cost == pytest.approx(2 * 0.01**2)

@@ -199,3 +199,31 @@ def test_bad_input_is_a_user_error(tum):
         retrieval.add([0], [tum[0].astype(np.float32)], submap_id=0)
     with pytest.raises(UserError):
         OrbRetrieval(RetrievalConfig(orb_candidates=0))
+
+
+def test_similarity_matches_dense_tf_idf():
+    """The inverted-file scoring (and its row-wise tail) equals a dense tf-idf cosine computed directly."""
+    retrieval = OrbRetrieval(RetrievalConfig(orb_features=300))
+    images = [random_texture(seed, (160, 200, 3)) for seed in range(200, 275)]
+    stored = [retrieval.extract(image) for image in images]
+    queries = [stored[3], retrieval.extract(random_texture(999, (160, 200, 3)))]
+
+    def dense_reference(count: int) -> np.ndarray:
+        # Dense over the words that occur (the full vocabulary is 2**18 wide).
+        words = np.unique(np.concatenate([f.word_ids for f in stored + queries]))
+        tf = np.zeros((count, len(words)))
+        for row, features in enumerate(stored[:count]):
+            tf[row, np.searchsorted(words, features.word_ids)] = features.word_tf
+        idf = np.log1p(count / np.maximum((tf > 0).sum(axis=0), 1))
+        query_tf = np.zeros((len(queries), len(words)))
+        for row, features in enumerate(queries):
+            query_tf[row, np.searchsorted(words, features.word_ids)] = features.word_tf
+        a, b = tf * idf, query_tf * idf
+        return (a @ b.T) / (np.linalg.norm(a, axis=1)[:, None] * np.linalg.norm(b, axis=1)[None, :])
+
+    retrieval.add(list(range(70)), images[:70], submap_id=0)
+    np.testing.assert_allclose(retrieval.similarity(queries), dense_reference(70), rtol=1e-4, atol=1e-6)
+    retrieval.add(list(range(70, 75)), images[70:], submap_id=1)  # scored row-wise, after the inverted file
+    similarity = retrieval.similarity(queries)
+    np.testing.assert_allclose(similarity, dense_reference(75), rtol=1e-4, atol=1e-6)
+    assert int(np.argmax(similarity[:, 0])) == 3 and similarity[3, 0] == pytest.approx(1.0, abs=1e-5)

@@ -31,7 +31,7 @@ class KeyframeConfig:
     lk_window: int = 21
     """Lucas-Kanade window size in px (OpenCV default, used by the reference code)."""
     lk_levels: int = 3
-    """Pyramid levels for Lucas-Kanade (reference code)."""
+    """Lucas-Kanade pyramid levels above the full image (OpenCV's maxLevel; reference code: 3)."""
     min_tracked: int = 10
     """A frame with fewer successfully tracked corners is always a keyframe."""
 
@@ -96,7 +96,7 @@ class RetrievalConfig:
     tau_interval: int = 2
     """Most recent submaps excluded from retrieval (paper: 2)."""
     tau_desc: float = 0.8
-    """SALAD: accept when the L2 descriptor distance is below this (paper: 0.8)."""
+    """SALAD only: accept when the L2 descriptor distance is below this (paper: 0.8)."""
     salad_weights: str | None = None
     """Path to ``dino_salad.ckpt``; ``None`` uses the user cache (downloaded on first use)."""
     salad_image_size: int = 224
@@ -106,7 +106,8 @@ class RetrievalConfig:
     orb_min_inliers: int = 40
     """ORB: geometrically verified matches (fundamental-matrix RANSAC inliers) to accept a loop."""
     orb_candidates: int = 5
-    """ORB: candidates, ranked by bag-of-words similarity, that are geometrically verified."""
+    """ORB: (query, stored) pairs per submap, ranked by bag-of-words similarity, that are
+    geometrically verified (a fixed budget, so the cost does not grow with the submap size)."""
     min_loop_inlier_ratio: float = 0.3
     """A retrieved loop is added to the graph only if its alignment keeps this inlier fraction
     (and needed no fallback): one false loop bends the whole map."""

@@ -71,13 +71,19 @@ def unproject_depth(depth: np.ndarray, K: np.ndarray, T_cam_ref: np.ndarray | No
     """
     depth = np.asarray(depth)
     S, H, W = depth.shape
-    rays = pixel_grid(H, W).reshape(-1, 3)  # (HW, 3)
-    K_inv = np.linalg.inv(np.asarray(K, dtype=np.float64))  # (S, 3, 3)
-    X_cam = np.einsum("sij,nj->sni", K_inv, rays) * depth.reshape(S, -1, 1).astype(np.float64)
+    # X_ref = depth * (R_ref_cam K^-1 [u v 1]^T) + t_ref_cam: one 3x3 per frame, applied by BLAS
+    # in float32 (relative error ~1e-7, far below any depth noise).
+    M = np.linalg.inv(np.asarray(K, dtype=np.float64))
+    offset = np.zeros((S, 3))
     if T_cam_ref is not None:
         T_ref_cam = se3_inverse(T_cam_ref)
-        X_cam = np.einsum("sij,snj->sni", T_ref_cam[:, :3, :3], X_cam) + T_ref_cam[:, None, :3, 3]
-    return X_cam.reshape(S, H, W, 3).astype(np.float32)
+        M = T_ref_cam[:, :3, :3] @ M
+        offset = T_ref_cam[:, :3, 3]
+    rays = pixel_grid(H, W).reshape(H * W, 3).astype(np.float32)
+    X = np.einsum("nj,sij->sni", rays, M.astype(np.float32), optimize=True)  # (S, HW, 3)
+    X *= depth.reshape(S, H * W, 1).astype(np.float32, copy=False)
+    X += offset[:, None, :].astype(np.float32)
+    return X.reshape(S, H, W, 3)
 
 
 def project_points(K: np.ndarray, T_cam_ref: np.ndarray, X_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -7,13 +7,14 @@ than ``KeyframeConfig.min_tracked`` corners could be tracked (texture-less view,
 scene change: the reference is useless, so start a new one).
 
 Threshold: the paper uses 25 px, the authors' code and TUM script use 50 px; the default here
-is the paper's 25 px (about one keyframe every 4-6 frames on the start of TUM fr1_xyz at 30 Hz,
-640x480). Pass ``KeyframeConfig(tau_disparity=50)`` to match the reference code.
+is the paper's 25 px: 6 keyframes in the first 37 frames (1.2 s) of TUM fr1_xyz at 30 Hz,
+640x480, against 4 at 50 px. Pass ``KeyframeConfig(tau_disparity=50)`` to match the reference code.
 
 Cost: one grey conversion and one ``cv2.calcOpticalFlowPyrLK`` call per frame (about 12 ms at
-640x480 with ~800 corners on a 2-core CPU, see ``benchmarks/results/retrieval_orb.md``), plus
-one ``cv2.goodFeaturesToTrack`` (about 8 ms) per keyframe only. OpenCV's Python binding does not
-accept a prebuilt pyramid for the previous image, so the keyframe pyramid is rebuilt per call.
+640x480 with ~800 corners on an idle 2-core CPU, ~28 ms on a loaded one, see
+``benchmarks/results/retrieval_orb.md``), plus one ``cv2.goodFeaturesToTrack`` (about 8 ms idle)
+per keyframe only. OpenCV's Python binding does not accept a prebuilt pyramid for the previous
+image, so the keyframe pyramid is rebuilt per call.
 """
 
 from __future__ import annotations

@@ -170,7 +170,7 @@ def summarize(result: SLAMResult, config_dict: dict, ate_result: ATEResult | Non
                 "min": float(values.min()) if len(values) else None}
 
     summary = {
-        "counts": {k: result.stats[k] for k in ("frames", "keyframes", "submaps", "loops", "fallbacks") if k in result.stats},
+        "counts": {k: result.stats[k] for k in ("frames", "keyframes", "submaps", "loops", "fallbacks", "frames_without_ground_truth") if k in result.stats},
         "inlier_ratio": {"odometry": ratios(odometry), "loops": ratios(loops)},
         "fallbacks": [{"submaps": [e.submap_from, e.submap_to], "frame": e.frame_index, "reason": e.fallback}
                       for e in result.edges if e.fallback],

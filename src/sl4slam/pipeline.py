@@ -110,6 +110,8 @@ class SLAMPipeline:
         self._prior_points: np.ndarray | None = None  # (H, W, 3) float32, full precision
         self._prior_mask: np.ndarray | None = None
         self._source: FrameSource | None = None
+        self._needs_ground_truth = bool(getattr(frontend, "requires_ground_truth", False))
+        self.frames_without_ground_truth = 0
 
     # ------------------------------------------------------------------ driving
     def run(self, source: FrameSource, progress: bool = True) -> SLAMResult:
@@ -129,6 +131,11 @@ class SLAMPipeline:
             if count >= total:
                 break
             if count % max(1, self.config.stride):
+                bar.update(1)
+                continue
+            if self._needs_ground_truth and (frame.depth is None or frame.T_world_cam is None or frame.K is None):
+                # e.g. TUM frames whose depth image is not within 0.02 s: the simulator cannot use them
+                self.frames_without_ground_truth += 1
                 bar.update(1)
                 continue
             self.num_frames += 1
@@ -261,11 +268,10 @@ class SLAMPipeline:
                 f"only {len(X_a)} confident pixels shared between submaps; the frontend's confidence is too "
                 "low everywhere — lower --tau-conf or check the input images"
             )
-        cfg = self.config.alignment
-        seed = cfg.seed * 1_000_003 + seed
         if self.config.backend.kind == "sim3":
             return sim3_from_shared_frame(T_cam_a, T_cam_b, X_a, X_b)
-        return estimate_sl4(X_a, X_b, cfg, seed=seed)
+        # the alignment combines config.alignment.seed with this per-edge seed
+        return estimate_sl4(X_a, X_b, self.config.alignment, seed=seed)
 
     def _align_odometry(self, *args, **kwargs) -> Alignment:
         try:
@@ -302,6 +308,7 @@ class SLAMPipeline:
             "submaps": self.num_submaps,
             "loops": self.num_loops,
             "fallbacks": len(fallbacks),
+            "frames_without_ground_truth": self.frames_without_ground_truth,
             "seconds_by_stage": dict(self.timings),
             "stored_bytes": int(sum(k.nbytes for k in self.keyframes)),
             "seconds_per_submap": {

@@ -88,7 +88,8 @@ def transfer_errors(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray) -> tuple[np
         X_a, X_b: ``(n, 3)`` correspondences; their dtype (float32 or float64) is used throughout.
 
     Returns:
-        r2: ``(M, n)`` squared distances in ``X_a``'s units (after homogeneous division).
+        r2: ``(M, n)`` squared distances in ``X_a``'s units (after homogeneous division);
+            meaningless (computed with ``w = 1``) where ``in_front`` is False.
         in_front: ``(M, n)`` bool, ``w > 0``.
     """
     M, n = len(H), len(X_b)
@@ -163,17 +164,16 @@ def ransac_best(
     if not valid.any():
         return None, stats
     H = H[valid]
-    scored = rng.permutation(N)[: config.max_points]
+    scored = rng.permutation(N)[: config.max_points]  # random order: any prefix is a random subset
     # Ranking hypotheses needs far less precision than float64 (errors ~1e-7 vs a 1e-2 threshold).
-    X_a, X_b = X_a.astype(np.float32), X_b.astype(np.float32)
+    sub_a, sub_b = X_a[scored].astype(np.float32), X_b[scored].astype(np.float32)
     stats["scored_points"] = int(len(scored))
     keep = max(PREEMPTIVE_MIN_KEEP, int(np.ceil(PREEMPTIVE_KEEP * len(H))))
     if len(H) > keep and len(scored) > 2 * PREEMPTIVE_POINTS:
-        first = scored[:PREEMPTIVE_POINTS]
-        costs = msac_costs(H, X_a[first], X_b[first], threshold)
+        costs = msac_costs(H, sub_a[:PREEMPTIVE_POINTS], sub_b[:PREEMPTIVE_POINTS], threshold)
         H = H[np.argpartition(costs, keep - 1)[:keep]]
     stats["fully_scored_hypotheses"] = int(len(H))
-    costs = msac_costs(H, X_a[scored], X_b[scored], threshold)
+    costs = msac_costs(H, sub_a, sub_b, threshold)
     return H[int(np.argmin(costs))], stats
 
 

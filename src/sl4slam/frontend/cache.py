@@ -54,6 +54,10 @@ class ReplayFrontend:
         self.directory = Path(directory)
         if not self.directory.is_dir() or not any(self.directory.glob("submap_*.npz")):
             raise UserError(f"no recorded frontend outputs in {self.directory}; record them first with --cache-frontend")
+        with np.load(sorted(self.directory.glob("submap_*.npz"))[0]) as first:
+            recorded_by = str(first["frontend"]) if "frontend" in first.files else ""
+        # Replaying the simulator must skip the same frames (those without ground truth) as recording did.
+        self.requires_ground_truth = recorded_by == "simulated"
 
     def reconstruct(self, frames: Sequence[Frame], submap_id: int) -> SubmapPrediction:
         path = _path(self.directory, submap_id)

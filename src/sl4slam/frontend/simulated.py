@@ -111,6 +111,7 @@ class SimulatedFrontend:
     """
 
     name = "simulated"
+    requires_ground_truth = True  # frames without depth, pose or K are skipped by the pipeline
 
     def __init__(self, config: SimulatorConfig | None = None):
         self.config = config if config is not None else SimulatorConfig()

@@ -155,12 +155,15 @@ class DescriptorIndex:
         if rows == 0 or num_queries == 0 or k <= 0 or (mask is not None and bool(mask.all())):
             return SearchResult(distances, frame_ids, submap_ids)
 
-        dots = (query.to(self.dtype) @ self._vectors[:rows].T).float()  # (Q, rows)
-        sq_dist = (query.square().sum(dim=1, keepdim=True) + self._sq_norms[:rows]).sub_(dots.mul_(2))
+        # |q - e|^2 = |q|^2 + 2 (|e|^2 / 2 - q.e): rank by the bracket (one product, one
+        # subtraction over the (Q, rows) block) and add |q|^2 to the k winners only.
+        dots = query.to(self.dtype) @ self._vectors[:rows].T  # (Q, rows) in the storage dtype
+        ranking = torch.sub(self._sq_norms[:rows].mul(0.5), dots)  # promoted to float32
         if mask is not None:
-            sq_dist.masked_fill_(mask, float("inf"))
+            ranking.masked_fill_(mask, float("inf"))
         k_eff = min(k, rows)
-        best_sq, best_rows = torch.topk(sq_dist, k_eff, dim=1, largest=False, sorted=True)
+        best_half, best_rows = torch.topk(ranking, k_eff, dim=1, largest=False, sorted=True)
+        best_sq = best_half.mul_(2).add_(query.square().sum(dim=1, keepdim=True))
         best = best_sq.clamp_min_(0).sqrt_().cpu().numpy()
         best_rows = best_rows.cpu().numpy()
         accepted = best < max_distance

@@ -61,13 +61,13 @@ def _cast(world: World, o: list[np.ndarray], d: list[np.ndarray]) -> tuple[np.nd
 
     # Leaving the room: the nearest of the three exit planes (the one ahead on each axis).
     exits = [
-        (np.where(d[a] > 0, dtype.type(layout.room_max[a]), dtype.type(layout.room_min[a])) - o[a]) * inv[a]
+        (np.where(inv[a] > 0, dtype.type(layout.room_max[a]), dtype.type(layout.room_min[a])) - o[a]) * inv[a]
         for a in range(3)
     ]
     t = np.minimum(np.minimum(exits[0], exits[1]), exits[2])
     axis = np.where(exits[0] == t, 0, np.where(exits[1] == t, 1, 2))
-    d_on_axis = np.where(axis == 0, d[0], np.where(axis == 1, d[1], d[2]))
-    surface = 2 * axis + (d_on_axis > 0)
+    # Same sign convention as the exit planes above (a zero component counts as positive).
+    surface = 2 * axis + (_select(axis, inv) > 0)
 
     # Entering a box: the farthest near plane, valid if before the nearest far plane and the current hit.
     for box, (lo, hi) in enumerate(zip(layout.boxes_min, layout.boxes_max)):

@@ -48,7 +48,9 @@ class Layout:
         path_radii: ``(2,)`` float64 ellipse radii (x, y).
         path_height: camera height (m) at the start.
         height_wobble: amplitude (m) of the height variation along the loop.
-        yaw_offset: radians between the outward direction and the viewing direction.
+        yaw_offset: mean radians between the outward direction and the viewing direction.
+        yaw_swing: amplitude (radians) of the periodic swing of that angle along the loop.
+        swing_phase: phase (radians) of the swing.
         cruise_pitch: radians (negative = looking down) outside the floor segment.
         start_angle: radians, the ellipse angle of the first pose.
         boxes_min, boxes_max: ``(B, 3)`` float64 box corners.
@@ -61,6 +63,8 @@ class Layout:
     path_height: float
     height_wobble: float
     yaw_offset: float
+    yaw_swing: float
+    swing_phase: float
     cruise_pitch: float
     start_angle: float
     boxes_min: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
@@ -154,7 +158,9 @@ def _path_from_layout(layout: Layout, s: np.ndarray) -> np.ndarray:
     x = layout.path_centre[0] + layout.path_radii[0] * np.cos(angle)
     y = layout.path_centre[1] + layout.path_radii[1] * np.sin(angle)
     z = layout.path_height + layout.height_wobble * np.sin(2.0 * np.pi * s) * np.cos(4.0 * np.pi * s)
-    yaw = angle + layout.yaw_offset
+    # The viewing direction swings between outwards-ahead (near walls and furniture) and
+    # inwards-ahead (across the room, far depths); the swing is periodic so the loop still closes.
+    yaw = angle + layout.yaw_offset + layout.yaw_swing * np.sin(2.0 * np.pi * s + layout.swing_phase)
     pitch = layout.cruise_pitch + (-0.5 * np.pi - layout.cruise_pitch) * floor_weight(s)
     forward = np.stack([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)], axis=-1)
     # "right" stays horizontal and follows the yaw, so looking straight down is not singular.
@@ -187,7 +193,9 @@ def make_layout(seed: int) -> Layout:
         path_radii=np.array([size[0] * rng.uniform(0.20, 0.24), size[1] * rng.uniform(0.18, 0.22)]),
         path_height=float(rng.uniform(1.3, 1.5)),
         height_wobble=float(rng.uniform(0.08, 0.15)),
-        yaw_offset=float(np.deg2rad(rng.uniform(30.0, 45.0))),
+        yaw_offset=float(np.deg2rad(rng.uniform(70.0, 80.0))),
+        yaw_swing=float(np.deg2rad(rng.uniform(30.0, 40.0))),
+        swing_phase=float(rng.uniform(0.0, 2.0 * np.pi)),
         cruise_pitch=float(np.deg2rad(-rng.uniform(10.0, 16.0))),
         start_angle=float(rng.uniform(0.0, 2.0 * np.pi)),
     )

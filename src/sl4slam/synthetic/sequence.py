@@ -1,0 +1,198 @@
+"""Write a synthetic world's rendered sequence as a TUM RGB-D folder."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sl4slam.errors import UserError
+from sl4slam.io.tum import TUM_DEPTH_SCALE, write_tum_trajectory
+from sl4slam.synthetic.render import default_intrinsics, render_frames
+from sl4slam.synthetic.world import (
+    FLOOR_HOLD,
+    FLOOR_SURFACE,
+    _path_from_layout,
+    make_world,
+    path_parameters,
+)
+
+logger = logging.getLogger("sl4slam")
+
+SYNTHETIC_FPS = 30.0
+METADATA_FILE = "synthetic.json"
+CALIBRATION_FILE = "calibration.txt"
+CONTACT_SHEET_FILE = "contact_sheet.png"
+
+
+def _timestamps(num_frames: int) -> np.ndarray:
+    """``(N,)`` 30 Hz timestamps rounded to the microseconds written in the file lists."""
+    return np.round(np.arange(num_frames) / SYNTHETIC_FPS, 6)
+
+
+def contact_sheet(rgb: np.ndarray, labels: list[str], columns: int = 6) -> np.ndarray:
+    """Tile ``(M, H, W, 3)`` uint8 images into one ``(rows * H, columns * W, 3)`` image with a label on each."""
+    count, height, width = rgb.shape[:3]
+    rows = -(-count // columns)
+    sheet = np.full((rows * height, columns * width, 3), 255, np.uint8)
+    for i in range(count):
+        tile = np.ascontiguousarray(rgb[i])
+        cv2.putText(tile, labels[i], (5, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(tile, labels[i], (5, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        r, c = divmod(i, columns)
+        sheet[r * height : (r + 1) * height, c * width : (c + 1) * width] = tile
+    return sheet
+
+
+def _longest_run(flags: np.ndarray) -> tuple[int, int]:
+    """Half-open ``(start, stop)`` of the longest run of True in ``flags`` (``(0, 0)`` if none)."""
+    best = (0, 0)
+    padded = np.concatenate([[False], flags, [False]]).astype(np.int8)
+    edges = np.flatnonzero(np.diff(padded))
+    for start, stop in zip(edges[0::2], edges[1::2]):
+        if stop - start > best[1] - best[0]:
+            best = (int(start), int(stop))
+    return best
+
+
+def write_synthetic_sequence(
+    out_dir: str | Path,
+    num_frames: int = 600,
+    width: int = 320,
+    height: int = 240,
+    seed: int = 0,
+    overwrite: bool = False,
+    sheet_frames: int = 24,
+    block_frames: int = 32,
+) -> Path:
+    """Render the synthetic world ``seed`` along its looping path and write a TUM RGB-D folder.
+
+    Output (written to a temporary sibling folder, then renamed into place):
+
+    - ``rgb/<timestamp>.png`` (8-bit RGB) and ``depth/<timestamp>.png`` (16-bit, 5000 per metre),
+    - ``rgb.txt``, ``depth.txt``, ``groundtruth.txt`` (camera-to-world, TUM format), 30 Hz,
+    - ``calibration.txt`` (``fx = .. fy = .. cx = .. cy = ..``, read by :class:`sl4slam.io.TumSource`),
+    - ``synthetic.json``: seed, size, ``K``, the floor-only frame range (measured on the renders:
+      frames where every pixel shows the floor), loop information and depth range,
+    - ``contact_sheet.png``: ``sheet_frames`` evenly sampled frames with their indices.
+
+    Args:
+        out_dir: the folder to create.
+        num_frames: frames to render (>= 2); the last pose equals the first.
+        width, height: image size in pixels (>= 16).
+        seed: world and path seed.
+        overwrite: replace an existing ``out_dir``; otherwise an existing non-empty folder is an error.
+        sheet_frames: frames shown on the contact sheet.
+        block_frames: frames rendered per block (bounds memory).
+
+    Returns:
+        ``out_dir`` as a Path.
+    """
+    out_dir = Path(out_dir)
+    if int(num_frames) < 2:
+        raise UserError(f"--frames must be at least 2, got {num_frames}")
+    if int(width) < 16 or int(height) < 16:
+        raise UserError(f"image size must be at least 16x16 px, got {width}x{height}")
+    if out_dir.exists() and not (out_dir.is_dir() and not any(out_dir.iterdir())) and not overwrite:
+        raise UserError(f"output folder {out_dir} already exists and is not empty; choose another folder or overwrite it")
+    num_frames, width, height = int(num_frames), int(width), int(height)
+
+    world = make_world(seed)
+    poses = _path_from_layout(world.layout, path_parameters(num_frames))
+    K = default_intrinsics(width, height)
+    stamps = _timestamps(num_frames)
+    names = [f"{stamp:.6f}.png" for stamp in stamps]
+
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = out_dir.with_name(f".{out_dir.name}.{os.getpid()}.tmp")
+    if staging.exists():
+        shutil.rmtree(staging)
+    try:
+        (staging / "rgb").mkdir(parents=True)
+        (staging / "depth").mkdir()
+        floor_only = np.zeros(num_frames, bool)
+        depth_min, depth_max = np.inf, 0.0
+        sheet_indices = np.unique(np.linspace(0, num_frames - 1, min(sheet_frames, num_frames)).round().astype(int))
+        sheet_images = {}
+        for start in range(0, num_frames, block_frames):
+            stop = min(start + block_frames, num_frames)
+            rgb, depth, surfaces = render_frames(world, poses[start:stop], K, width, height, return_surfaces=True)
+            floor_only[start:stop] = np.all(surfaces.reshape(stop - start, -1) == FLOOR_SURFACE, axis=1)
+            depth_min = min(depth_min, float(depth.min()))
+            depth_max = max(depth_max, float(depth.max()))
+            raw_depth = np.clip(np.round(depth * TUM_DEPTH_SCALE), 1, 65535).astype(np.uint16)
+            for offset, index in enumerate(range(start, stop)):
+                ok_rgb = cv2.imwrite(str(staging / "rgb" / names[index]), cv2.cvtColor(rgb[offset], cv2.COLOR_RGB2BGR))
+                ok_depth = cv2.imwrite(str(staging / "depth" / names[index]), raw_depth[offset])
+                if not (ok_rgb and ok_depth):
+                    raise UserError(f"cannot write images under {staging}; check free disk space and permissions")
+                if index in sheet_indices:
+                    sheet_images[index] = rgb[offset].copy()
+
+        header = "# {kind}\n# file: 'sl4slam synthetic world, seed {seed}'\n# timestamp filename\n"
+        for kind, folder in (("color images", "rgb"), ("depth maps", "depth")):
+            lines = [f"{stamp:.6f} {folder}/{name}" for stamp, name in zip(stamps, names)]
+            (staging / f"{folder}.txt").write_text(header.format(kind=kind, seed=seed) + "\n".join(lines) + "\n")
+        write_tum_trajectory(staging / "groundtruth.txt", stamps, poses)
+        (staging / CALIBRATION_FILE).write_text(
+            "sl4slam synthetic world -- pinhole camera, no distortion\n"
+            f"Image size: {width} x {height}\n"
+            f"fx = {float(K[0, 0])!r}  fy = {float(K[1, 1])!r}  cx = {float(K[0, 2])!r}  cy = {float(K[1, 2])!r}\n"
+            "Pixel centres at integer coordinates. Depth PNGs: 16-bit, value / 5000 = metres (z along the optical axis).\n"
+            "groundtruth.txt: camera-to-world poses, OpenCV camera axes (x right, y down, z forward), world z up.\n"
+        )
+        labels = [f"#{i}" + (" floor" if floor_only[i] else "") for i in sheet_indices]
+        sheet = contact_sheet(np.stack([sheet_images[i] for i in sheet_indices]), labels)
+        cv2.imwrite(str(staging / CONTACT_SHEET_FILE), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+
+        floor_start, floor_stop = _longest_run(floor_only)
+        metadata = {
+            "generator": "sl4slam.synthetic",
+            "seed": int(seed),
+            "num_frames": num_frames,
+            "width": width,
+            "height": height,
+            "fps": SYNTHETIC_FPS,
+            "depth_scale": TUM_DEPTH_SCALE,
+            "K": K.tolist(),
+            "floor_only": {
+                "start": floor_start,
+                "stop": floor_stop,
+                "count": int(floor_only.sum()),
+                "description": "frames [start, stop) see nothing but the floor (planar, degenerate case)",
+                "designed_path_interval": list(FLOOR_HOLD),
+            },
+            "loop": {
+                "first_frame": 0,
+                "last_frame": num_frames - 1,
+                "description": "the last pose equals the first; the path circles the room once",
+            },
+            "depth_range_m": [depth_min, depth_max],
+            "room_size_m": world.layout.room_max.tolist(),
+            "num_boxes": world.num_boxes,
+        }
+        (staging / METADATA_FILE).write_text(json.dumps(metadata, indent=2) + "\n")
+
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        os.replace(staging, out_dir)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+    logger.info(
+        "wrote %d synthetic frames to %s (floor-only frames %d..%d)", num_frames, out_dir, floor_start, floor_stop - 1
+    )
+    return out_dir
+
+
+def read_synthetic_metadata(folder: str | Path) -> dict:
+    """The ``synthetic.json`` of a folder written by :func:`write_synthetic_sequence`."""
+    path = Path(folder) / METADATA_FILE
+    if not path.is_file():
+        raise UserError(f"{folder} has no {METADATA_FILE}; it was not written by write_synthetic_sequence")
+    return json.loads(path.read_text())
