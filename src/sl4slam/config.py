@@ -152,6 +152,9 @@ class SimulatorConfig:
     outlier_confidence: float = 0.02
     """Factor on the confidence excess (confidence - 1) inside outlier blobs; pixels with no
     measured depth (filled from their nearest neighbour) get confidence exactly 1."""
+    distort_first_submap: bool = True
+    """Distort submap 0 too. The world frame is submap 0's frame, so its distortion is inherited
+    by every backend alike; switching it off isolates the error that alignment adds."""
     seed: int = 0
     """Seed (>= 0); ``H_s`` is drawn from (seed, submap id), noise from (seed, submap id, frame index)."""
 

@@ -15,7 +15,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .alignment import estimate_sl4, sim3_from_shared_frame
+from .alignment import camera_constrained_sl4, estimate_sl4, sim3_from_shared_frame
 from .backend import make_backend
 from .config import SLAMConfig
 from .errors import UserError
@@ -208,7 +208,7 @@ class SLAMPipeline:
             prev = self._by_frame[shared.index]
             alignment = self._align_odometry(
                 self._prior_points, self._prior_mask, points[0], mask[0],
-                prev.T_cam_submap, prediction.T_cam_submap[0], seed=submap_id,
+                (prev.K, prev.T_cam_submap), (prediction.K[0], prediction.T_cam_submap[0]), seed=submap_id,
             )
             self._record_edge("odometry", prev.submap_id, submap_id, shared.index, alignment)
             seconds["alignment"] = time.perf_counter() - t0
@@ -221,8 +221,8 @@ class SLAMPipeline:
             old = self._by_frame[candidate.match_frame]
             try:
                 alignment = self._align(
-                    old.points(), old.mask(), points[slot], mask[slot], old.T_cam_submap,
-                    prediction.T_cam_submap[slot], seed=submap_id * 1000 + offset + 1,
+                    old.points(), old.mask(), points[slot], mask[slot], (old.K, old.T_cam_submap),
+                    (prediction.K[slot], prediction.T_cam_submap[slot]), seed=submap_id * 1000 + offset + 1,
                 )
             except ValueError as exc:
                 log.info("loop %d->%d rejected: %s", old.submap_id, submap_id, exc)
@@ -258,8 +258,11 @@ class SLAMPipeline:
         if self.on_submap is not None:
             self.on_submap(self, submap_id)
 
-    def _align(self, X_a_map, mask_a, X_b_map, mask_b, T_cam_a, T_cam_b, seed: int) -> Alignment:
-        """``H_a_b`` from one frame's pixels seen in submaps a and b (confident in both)."""
+    def _align(self, X_a_map, mask_a, X_b_map, mask_b, camera_a, camera_b, seed: int) -> Alignment:
+        """``H_a_b`` from one frame's pixels seen in submaps a and b (confident in both).
+
+        ``camera_a`` / ``camera_b`` are that frame's ``(K, T_cam_submap)`` in each submap.
+        """
         both = mask_a & mask_b
         X_a = X_a_map[both].astype(np.float64)
         X_b = X_b_map[both].astype(np.float64)
@@ -268,10 +271,21 @@ class SLAMPipeline:
                 f"only {len(X_a)} confident pixels shared between submaps; the frontend's confidence is too "
                 "low everywhere — lower --tau-conf or check the input images"
             )
+        (K_a, T_cam_a), (K_b, T_cam_b) = camera_a, camera_b
         if self.config.backend.kind == "sim3":
-            return sim3_from_shared_frame(T_cam_a, T_cam_b, X_a, X_b)
+            return sim3_from_shared_frame(T_cam_a, T_cam_b, X_a, X_b, self.config.alignment.inlier_threshold)
         # the alignment combines config.alignment.seed with this per-edge seed
-        return estimate_sl4(X_a, X_b, self.config.alignment, seed=seed)
+        alignment = estimate_sl4(X_a, X_b, self.config.alignment, seed=seed)
+        if alignment.fallback is None:
+            return alignment
+        # Degenerate 15-DOF fit (e.g. a planar shared frame): the frame's two cameras supply the
+        # constraints the points lack; keep it when it explains at least as many points.
+        constrained = camera_constrained_sl4(
+            X_a, X_b, K_a @ to_4x4(T_cam_a)[:3], K_b @ to_4x4(T_cam_b)[:3], alignment.H, self.config.alignment)
+        if constrained is not None and constrained.inlier_ratio >= alignment.inlier_ratio:
+            constrained.fallback = f"{alignment.fallback}; used the camera-constrained projective fit"
+            return constrained
+        return alignment
 
     def _align_odometry(self, *args, **kwargs) -> Alignment:
         try:

@@ -328,7 +328,7 @@ def estimate_sl4(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, seed
         ``(N,)``, inlier ratio, inlier RMS in ``X_a`` units; ``extras`` holds the statistics.
 
     Raises:
-        ValueError: fewer than 5 finite correspondences.
+        ValueError: fewer than 5 finite correspondences, or a fallback whose points are collinear.
     """
     start = time.perf_counter()
     X_a_in, X_b_in = X_a, X_b

@@ -30,7 +30,10 @@ Corruption model (settings of :class:`~sl4slam.config.SimulatorConfig`, command 
    - ``g = exp(scale * c)``, ``c ~ N(0, 1)`` (``scale`` [0]): the global scale.
 
    ``H_s = G_s N`` when normalizing, else ``N^-1 G_s N`` (metric units, same distortion), and is
-   then normalized to det 1. This block form is the most general distortion that keeps the first
+   then normalized to det 1. With ``distort_first_submap`` [on] switched off, submap 0 gets
+   ``G_s = I`` (only the normalization): the world frame is submap 0's frame, so its distortion
+   would be inherited by any backend alike, and switching it off isolates the alignment error.
+   This block form is the most general distortion that keeps the first
    camera at ``[I | 0]`` (as VGGT's first extrinsic is by construction): ``[I | 0] H_s^-1 =
    [A | 0]`` with ``A`` upper triangular, which the first camera's intrinsics absorb.
    The distorted camera of frame ``i`` is ``P_i H_s^-1`` with ``P_i = K_i [T_cam_i_cam_0]``;
@@ -194,6 +197,8 @@ class SimulatedFrontend:
         G = np.eye(4)
         G[:3, :3] = np.exp(cfg.scale * log_scale) * B
         G[3, :3] = cfg.perspective * direction
+        if submap_id == 0 and not cfg.distort_first_submap:
+            G = np.eye(4)
 
         kappa = truth.normalizing_scale()
         N = np.diag([kappa, kappa, kappa, 1.0])

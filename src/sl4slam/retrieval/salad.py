@@ -36,11 +36,13 @@ class SearchResult:
 class DescriptorIndex:
     """Exact L2 nearest-neighbour search over descriptors, stored as rows of one matrix.
 
-    Distances are ``sqrt(|q|^2 + |e|^2 - 2 q.e)``; the dot products of a query batch with all
-    eligible rows come from a single matrix product in the storage dtype (float16 by default:
-    half the memory traffic of float32, which bounds the query time on CPU; the products are
-    accumulated in float32 by the BLAS and rounded once, about 5e-4 absolute on a dot product
-    of unit vectors). Row norms are kept in float32, computed from the stored (rounded) values.
+    Ranking uses ``|q - e|^2 = |q|^2 + 2 (|e|^2 / 2 - q.e)``: the bracket for a batch of queries
+    against all eligible rows is one fused matrix product (``addmm``) in the storage dtype
+    (float16 by default: half the memory traffic of float32, which bounds the query time on
+    CPU; a ranking value is rounded once, about 2.5e-4 for unit vectors). The best candidates
+    (k plus a few spares) are then measured exactly in float32 from the stored rows and
+    re-sorted, so reported distances carry only the storage rounding of the descriptors.
+    Descriptors are expected to have moderate norms (SALAD's are unit vectors).
 
     Rows are appended in insertion order; while submap ids arrive in non-decreasing order (the
     pipeline's case) the rows eligible for ``max_submap_id`` are a prefix and are searched in
@@ -155,17 +157,22 @@ class DescriptorIndex:
         if rows == 0 or num_queries == 0 or k <= 0 or (mask is not None and bool(mask.all())):
             return SearchResult(distances, frame_ids, submap_ids)
 
-        # |q - e|^2 = |q|^2 + 2 (|e|^2 / 2 - q.e): rank by the bracket (one product, one
-        # subtraction over the (Q, rows) block) and add |q|^2 to the k winners only.
-        dots = query.to(self.dtype) @ self._vectors[:rows].T  # (Q, rows) in the storage dtype
-        ranking = torch.sub(self._sq_norms[:rows].mul(0.5), dots)  # promoted to float32
+        # |q - e|^2 = |q|^2 + 2 (|e|^2 / 2 - q.e): rank all rows by the bracket, computed by one
+        # fused matrix product in the storage dtype, then measure the k winners exactly.
+        vectors = self._vectors[:rows]
+        half_sq_norms = self._sq_norms[:rows].mul(0.5).to(self.dtype)
+        ranking = torch.addmm(half_sq_norms.unsqueeze(0), query.to(self.dtype), vectors.T, beta=1, alpha=-1)
         if mask is not None:
             ranking.masked_fill_(mask, float("inf"))
         k_eff = min(k, rows)
-        best_half, best_rows = torch.topk(ranking, k_eff, dim=1, largest=False, sorted=True)
-        best_sq = best_half.mul_(2).add_(query.square().sum(dim=1, keepdim=True))
-        best = best_sq.clamp_min_(0).sqrt_().cpu().numpy()
-        best_rows = best_rows.cpu().numpy()
+        # a few spare candidates absorb ranking ties within the rounding of the storage dtype
+        k_ranked = min(rows, k_eff + 4) if self.dtype != torch.float32 else k_eff
+        ranked_values, ranked_rows = torch.topk(ranking, k_ranked, dim=1, largest=False, sorted=True)
+        exact = (vectors[ranked_rows.reshape(-1)].float().view(num_queries, k_ranked, self.dim) - query.unsqueeze(1)).norm(dim=2)
+        exact.masked_fill_(torch.isinf(ranked_values), float("inf"))  # masked rows stay excluded
+        order = torch.argsort(exact, dim=1, stable=True)[:, :k_eff]
+        best = exact.gather(1, order).cpu().numpy()
+        best_rows = ranked_rows.gather(1, order).cpu().numpy()
         accepted = best < max_distance
         distances[:, :k_eff] = np.where(accepted, best, np.inf)
         frame_ids[:, :k_eff] = np.where(accepted, self._frame_ids[best_rows], -1)

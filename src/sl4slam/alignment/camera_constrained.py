@@ -1,0 +1,123 @@
+"""Projective alignment constrained by the shared frame's two cameras (for degenerate scenes).
+
+When the shared frame sees a single plane, its points fix a 15-DOF ``H_a_b`` only up to a
+4-parameter family ``H + v pi^T`` (``pi`` the plane): the points alone cannot say how space off
+the plane is mapped. The frame's camera, reconstructed in both submaps, adds what the points
+lack: the same image means ``P_a H ~ P_b`` (11 equations), so ``H = H_p + c_a v^T`` with ``H_p``
+one solution, ``c_a`` the camera centre in submap ``a`` (homogeneous) and ``v`` in R^4. The points
+then fix ``v`` up to its component along the plane, which a small ridge term sets to the value
+nearest the particular solution ``H_p`` — the camera-consistent map closest to the Sim(3) guess.
+Unlike a Sim(3) fallback, this keeps the projective part that the plane does observe.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..config import AlignmentConfig
+from ..geometry import normalize_sl4, sl4_valid
+from ..types import Alignment
+from .ransac import clean_correspondences, score_one
+
+RIDGE = 1e-6
+# Relative planarity below which the points' plane leaves one direction of H unobserved.
+PLANAR = 0.02
+ITERATIONS = 6
+
+
+def camera_constrained_sl4(
+    X_a: np.ndarray,
+    X_b: np.ndarray,
+    P_a: np.ndarray,
+    P_b: np.ndarray,
+    H_guess: np.ndarray,
+    config: AlignmentConfig,
+) -> Alignment | None:
+    """``H_a_b`` in SL(4) consistent with one frame's cameras ``P_a ~ K_a [R_a|t_a]`` and ``P_b``.
+
+    Args:
+        X_a, X_b: ``(N, 3)`` the frame's points in submaps a and b (NaN rows ignored).
+        P_a, P_b: ``(3, 4)`` the frame's camera matrices in submaps a and b.
+        H_guess: ``(4, 4)`` an initial map (e.g. a Sim(3) fit) selecting the particular solution.
+        config: inlier threshold and minimum inlier count.
+
+    Returns:
+        An ``Alignment`` (model "sl4") or ``None`` when no valid SL(4) map results.
+    """
+    X_a_c, X_b_c, finite = clean_correspondences(X_a, X_b, 4, "SL(4)")
+    P_a = np.asarray(P_a, dtype=np.float64)
+    P_b = np.asarray(P_b, dtype=np.float64)
+    S = np.asarray(H_guess, dtype=np.float64)
+    # Particular solution of P_a H = lambda P_b nearest to S (pseudo-inverse correction).
+    PaS = P_a @ S
+    lam = float((PaS * P_b).sum() / (P_b * P_b).sum())
+    P_a_pinv = P_a.T @ np.linalg.inv(P_a @ P_a.T)
+    H_p = S + P_a_pinv @ (lam * P_b - PaS)
+    c_a = np.append(-np.linalg.solve(P_a[:, :3], P_a[:, 3]), 1.0)
+
+    x_b = np.c_[X_b_c, np.ones(len(X_b_c))]  # (N, 4)
+    mapped = x_b @ H_p.T  # (N, 4)
+    g = mapped[:, :3] - X_a_c * mapped[:, 3:4]  # (N, 3) algebraic residual of H_p
+    d = c_a[:3] - X_a_c  # (N, 3): residual(v) = g + (x_b . v) d
+    threshold = float(config.inlier_threshold)
+    use = np.ones(len(x_b), dtype=bool)
+    weights = 1.0 / np.maximum(np.abs(mapped[:, 3]), 1e-9)
+    H = H_p
+    for iteration in range(ITERATIONS):
+        w = weights[use]
+        A = (d[use, :, None] * x_b[use, None, :]) * w[:, None, None]  # (n, 3, 4)
+        b = g[use] * w[:, None]
+        A = A.reshape(-1, 4)
+        AtA = A.T @ A
+        v = -np.linalg.solve(AtA + RIDGE * np.trace(AtA) / 4 * np.eye(4), A.T @ b.reshape(-1))
+        H = H_p + np.outer(c_a, v)
+        if np.linalg.det(H) < 0:  # keep the sign convention w > 0 before judging det
+            H = -H
+        _, inliers, r2 = score_one(H, X_a_c, X_b_c, threshold)
+        w_now = x_b @ H[3]
+        weights = 1.0 / np.maximum(np.abs(w_now), 1e-9)
+        # Shrink the fitting set towards the inliers gradually, so early outliers cannot lock in.
+        cut = max(threshold, float(np.quantile(np.sqrt(r2), 0.5))) * (4.0 if iteration < ITERATIONS // 2 else 1.0)
+        use = (r2 < cut**2) & (w_now > 0)
+        if use.sum() < 4:
+            return None
+    if not sl4_valid(H) or inliers.sum() < config.min_inliers:
+        return None
+    H = _least_perspective(H, c_a, X_b_c[inliers])
+    _, inliers, r2 = score_one(H, X_a_c, X_b_c, threshold)
+    if not sl4_valid(H) or inliers.sum() < config.min_inliers:
+        return None
+    H = normalize_sl4(H)
+    count = int(inliers.sum())
+    full = np.zeros(len(finite), dtype=bool)
+    full[np.flatnonzero(finite)] = inliers
+    return Alignment(
+        H=H, inliers=full, inlier_ratio=count / len(finite), rms=float(np.sqrt(r2[inliers].mean())),
+        model="sl4", fallback=None, extras={"camera_constrained": True},
+    )
+
+
+def _least_perspective(H: np.ndarray, c_a: np.ndarray, X_plane: np.ndarray) -> np.ndarray:
+    """Within the unobserved family ``H + mu c_a pi^T`` (points on plane ``pi``), the member whose
+    perspective row is smallest relative to its last entry: consecutive submaps' distortions are
+    both near identity, so their relative map has a small perspective part.
+
+    Returns ``H`` unchanged when the points are not planar (nothing is unobserved).
+    """
+    centre = X_plane.mean(axis=0)
+    _, sing, Vt = np.linalg.svd(X_plane - centre, full_matrices=False)
+    if sing[-1] > PLANAR * sing[0]:
+        return H
+    normal = Vt[-1]
+    pi = np.append(normal, -normal @ centre)  # pi . [X; 1] = 0 on the plane
+    pi = pi / c_a[3]  # the last row of H changes by mu * c_a[3] * pi
+    a, c = H[3, :3], H[3, 3]
+    b, d = pi[:3], pi[3]
+    # f(mu) = |a + mu b|^2 / (c + mu d)^2 has one stationary point (the numerator of f' is linear)
+    denominator = (b @ b) * c - (a @ b) * d
+    if abs(denominator) < 1e-15:
+        return H
+    mu = ((a @ a) * d - (a @ b) * c) / denominator
+    if c + mu * d <= 0:
+        return H
+    return H + mu * np.outer(c_a, pi)
