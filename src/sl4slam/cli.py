@@ -130,7 +130,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_synth(args: argparse.Namespace) -> int:
     from .synthetic import write_synthetic_sequence
 
-    path = write_synthetic_sequence(args.out, num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
+    path = write_synthetic_sequence(args.out, num_frames=args.frames, width=args.width, height=args.height, seed=args.seed,
+                                    overwrite=args.overwrite)
     print(f"wrote {args.frames} frames to {path} (contact sheet: {Path(path) / 'contact_sheet.png'})")
     return 0
 
@@ -174,7 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo = verbs.add_parser("demo", help="synthetic world: SL(4) versus Sim(3) under a projective distortion")
     demo.add_argument("--out", default="sl4slam_demo", help="output folder")
     demo.add_argument("--frames", type=int, default=600, help="frames of the synthetic world")
-    demo.add_argument("--perspective", type=float, default=0.08, help="perspective distortion of the simulated frontend")
+    demo.add_argument("--perspective", type=float, default=0.2, help="perspective distortion of the simulated frontend")
     demo.add_argument("--quiet", action="store_true", help="no progress bar")
     demo.set_defaults(func=cmd_demo)
 
@@ -184,6 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--width", type=int, default=320)
     synth.add_argument("--height", type=int, default=240)
     synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     synth.set_defaults(func=cmd_synth)
 
     convert = verbs.add_parser("convert", help="write a .safetensors copy of a VGGT checkpoint")

@@ -81,6 +81,9 @@ class BackendConfig:
     """Isotropic sigma of between factors (reference code: 0.05)."""
     prior_sigma: float = 1e-6
     """Sigma of the prior on the first submap (reference code: 1e-6)."""
+    fallback_sigma_scale: float = 10.0
+    """Sigma multiplier for odometry measured by a fallback (degenerate-scene) fit, so that loop
+    closures correct those links first."""
     loop_kernel: str = "none"
     """Robust kernel on loop factors: "none", "huber" or "cauchy"."""
     loop_kernel_width: float = 1.0

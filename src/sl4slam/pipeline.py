@@ -213,7 +213,8 @@ class SLAMPipeline:
             self._record_edge("odometry", prev.submap_id, submap_id, shared.index, alignment)
             seconds["alignment"] = time.perf_counter() - t0
             t1 = time.perf_counter()
-            self.backend.add_submap(submap_id, self._as_node_measurement(alignment.H))
+            self.backend.add_submap(submap_id, self._as_node_measurement(alignment.H),
+                                    sigma_scale=cfg.backend.fallback_sigma_scale if alignment.fallback else 1.0)
             seconds["backend"] = time.perf_counter() - t1
         t0 = time.perf_counter()
         for offset, candidate in enumerate(c for c, f in zip(loops, loop_frames) if f is not None):

@@ -46,10 +46,11 @@ class Backend(Protocol):
     last_update_seconds: float
     """Wall time of the most recent :meth:`update` call, in seconds."""
 
-    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None) -> None:
+    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, sigma_scale: float = 1.0) -> None:
         """Add a node; ``H_prev_cur`` (4, 4) maps this submap's points into the previous submap.
 
-        The first submap takes ``None`` and is anchored at the identity.
+        The first submap takes ``None`` and is anchored at the identity. ``sigma_scale``
+        multiplies the factor's sigma (a less certain measurement, e.g. a degenerate fit).
         """
 
     def add_loop(self, i: int, j: int, H_i_j: np.ndarray) -> None:
@@ -193,7 +194,7 @@ class FactorGraphBackend(ABC):
             raise ValueError(f"submap id must be a non-negative integer, got {submap_id!r}")
         return int(submap_id)
 
-    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None) -> None:
+    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, sigma_scale: float = 1.0) -> None:
         """Add a node for ``submap_id``.
 
         Args:
@@ -201,6 +202,7 @@ class FactorGraphBackend(ABC):
             H_prev_cur: (4, 4) map from this submap's frame to the previously added submap's frame
                 (``x_prev ~ H_prev_cur x_cur``); ``None`` for the first submap, which gets the prior
                 at the identity. The initial guess is ``H_world_prev @ H_prev_cur``.
+            sigma_scale: multiplies the odometry sigma of this factor (> 0).
         """
         submap_id = self._check_id(submap_id)
         if submap_id in self._known:
@@ -216,9 +218,11 @@ class FactorGraphBackend(ABC):
                 raise ValueError(f"submap {submap_id} needs H_prev_cur (only the first submap takes None)")
             H_prev_cur = self._check("H_prev_cur", H_prev_cur)
             guess = self._check("initial guess", self._last_estimate @ H_prev_cur)
-            self._pending_factors.push_back(
-                self.relative_factor(self._order[-1], submap_id, H_prev_cur, self._odometry_noise)
-            )
+            if not sigma_scale > 0:
+                raise ValueError(f"sigma_scale must be positive, got {sigma_scale}")
+            noise = self._odometry_noise if sigma_scale == 1.0 else gtsam.noiseModel.Isotropic.Sigma(
+                self.dim, self.config.sigma * sigma_scale)
+            self._pending_factors.push_back(self.relative_factor(self._order[-1], submap_id, H_prev_cur, noise))
         self._pending_values.insert(key, self._to_gtsam(guess))
         self._order.append(submap_id)
         self._known.add(submap_id)

@@ -39,9 +39,9 @@ class DescriptorIndex:
     Ranking uses ``|q - e|^2 = |q|^2 + 2 (|e|^2 / 2 - q.e)``: the bracket for a batch of queries
     against all eligible rows is one fused matrix product (``addmm``) in the storage dtype
     (float16 by default: half the memory traffic of float32, which bounds the query time on
-    CPU; a ranking value is rounded once, about 2.5e-4 for unit vectors). The best candidates
-    (k plus a few spares) are then measured exactly in float32 from the stored rows and
-    re-sorted, so reported distances carry only the storage rounding of the descriptors.
+    CPU; a ranking value is rounded once, about 2.5e-4 for unit vectors). The k winners are
+    then measured exactly in float32 from the stored rows and re-sorted, so reported distances
+    carry only the storage rounding of the descriptors.
     Descriptors are expected to have moderate norms (SALAD's are unit vectors).
 
     Rows are appended in insertion order; while submap ids arrive in non-decreasing order (the
@@ -165,12 +165,13 @@ class DescriptorIndex:
         if mask is not None:
             ranking.masked_fill_(mask, float("inf"))
         k_eff = min(k, rows)
-        # a few spare candidates absorb ranking ties within the rounding of the storage dtype
-        k_ranked = min(rows, k_eff + 4) if self.dtype != torch.float32 else k_eff
-        ranked_values, ranked_rows = torch.topk(ranking, k_ranked, dim=1, largest=False, sorted=True)
-        exact = (vectors[ranked_rows.reshape(-1)].float().view(num_queries, k_ranked, self.dim) - query.unsqueeze(1)).norm(dim=2)
-        exact.masked_fill_(torch.isinf(ranked_values), float("inf"))  # masked rows stay excluded
-        order = torch.argsort(exact, dim=1, stable=True)[:, :k_eff]
+        ranked_values, ranked_rows = torch.topk(ranking, k_eff, dim=1, largest=False, sorted=True)
+        # Exact float32 distances of the winners only (ranking ties within the storage rounding
+        # are equally good matches), re-sorted; masked rows stay excluded.
+        winners = vectors[ranked_rows.reshape(-1)].float().view(num_queries, k_eff, self.dim)
+        exact = torch.linalg.vector_norm(winners - query.unsqueeze(1), dim=2)
+        exact.masked_fill_(torch.isinf(ranked_values), float("inf"))
+        order = torch.argsort(exact, dim=1, stable=True)
         best = exact.gather(1, order).cpu().numpy()
         best_rows = ranked_rows.gather(1, order).cpu().numpy()
         accepted = best < max_distance
