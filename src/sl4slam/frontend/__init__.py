@@ -27,7 +27,7 @@ def make_frontend(config: SLAMConfig, replay_dir: str | None = None, cache_dir: 
     elif config.frontend == "vggt":
         from .vggt import VGGTFrontend
 
-        frontend = VGGTFrontend(config.vggt)
+        frontend = VGGTFrontend(config.vggt, with_points=config.submap.use_point_head)
     else:
         raise UserError(f"unknown frontend '{config.frontend}': use --frontend vggt or --frontend simulated")
     if cache_dir is not None:
