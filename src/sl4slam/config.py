@@ -58,13 +58,17 @@ class AlignmentConfig:
     """RANSAC hypotheses (paper: 300)."""
     inlier_threshold: float = 0.01
     """Inlier distance in submap units (paper: 0.01)."""
-    max_points: int = 20000
-    """Correspondences scored per hypothesis; larger sets are subsampled (seeded)."""
+    max_points: int = 10000
+    """Correspondences each hypothesis is scored on; larger sets are subsampled (seeded). The
+    final inlier mask is computed on every point."""
+    max_refit_points: int = 20000
+    """Inliers used by each least-squares refit (an evenly strided subset beyond this)."""
     min_inliers: int = 50
     """Fewer inliers than this makes the 15-DOF fit degenerate: fall back to Sim(3)."""
     planarity_threshold: float = 0.02
-    """Smallest/largest singular value of centred inlier points below which they count as
-    coplanar, so the projective fit is degenerate: fall back to Sim(3)."""
+    """Spread of the points along their thinnest principal axis relative to the widest
+    (interdecile ranges, robust to a few off-plane points) below which they count as coplanar:
+    the 15-DOF fit is degenerate and a constrained model is used instead."""
     refit: bool = True
     """Least-squares refit of H on all inliers, then re-score (the reference code does not)."""
     seed: int = 0

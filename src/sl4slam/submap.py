@@ -23,9 +23,13 @@ def confidence_mask(confidence: np.ndarray, depth: np.ndarray, percentile: float
     (over all its frames, as in VGGT-SLAM) and whose depth is finite and positive.
     """
     valid = np.isfinite(depth) & (depth > 0) & np.isfinite(confidence)
-    if not valid.any():
+    if not valid.any() or percentile <= 0:
         return valid
-    threshold = np.percentile(confidence[valid], percentile) if percentile > 0 else -np.inf
+    values = confidence[valid]
+    # the k-th smallest value (no interpolation): a partition is several times faster than
+    # np.percentile on the millions of pixels of a submap
+    k = min(len(values) - 1, int(round(percentile / 100.0 * (len(values) - 1))))
+    threshold = np.partition(values, k)[k]
     return valid & (confidence > threshold)
 
 

@@ -184,9 +184,14 @@ def refine(
     threshold: float,
     fit: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
     min_points: int,
+    max_fit_points: int = 0,
 ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, int]:
-    """Least-squares refit on all inliers, re-score on all points, repeat while the inlier set
+    """Least-squares refit on the inliers, re-score on all points, repeat while the inlier set
     changes and the cost drops.
+
+    With ``max_fit_points > 0`` the fit uses an evenly strided subset of at most that many
+    inliers (dense points are spatially ordered, so the subset covers the frame evenly): the
+    estimate is as good for a fraction of the cost; scoring always uses every point.
 
     Args:
         H: ``(4, 4)`` starting hypothesis (``X_a ~ H X_b``).
@@ -201,8 +206,11 @@ def refine(
     for _ in range(REFIT_ROUNDS):
         if inliers.sum() < min_points:
             break
+        chosen = np.flatnonzero(inliers)
+        if max_fit_points > 0 and len(chosen) > max_fit_points:
+            chosen = chosen[:: -(-len(chosen) // max_fit_points)]
         try:
-            H_new = fit(X_a[inliers], X_b[inliers], H)
+            H_new = fit(X_a[chosen], X_b[chosen], H)
         except ValueError:  # degenerate least-squares fit: keep the current estimate
             break
         cost_new, inliers_new, r2_new = score_one(H_new, X_a, X_b, threshold)
@@ -280,7 +288,7 @@ def estimate_sim3(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, see
     H, stats = ransac_best(X_a, X_b, umeyama_sim3_batch, 3, threshold, config, rng)
     if H is None:
         raise ValueError("Sim(3) alignment failed: every 3-point sample is collinear; the shared frame's points are degenerate")
-    H, _, inliers, r2, refits = refine(H, X_a, X_b, threshold, _fit_sim3, 3)
+    H, _, inliers, r2, refits = refine(H, X_a, X_b, threshold, _fit_sim3, 3, config.max_refit_points)
     stats.update(refits=refits, dropped_nonfinite=int(len(finite) - finite.sum()), seconds=time.perf_counter() - start)
     return Alignment(
         H=H,
@@ -361,7 +369,7 @@ def estimate_sl4(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, seed
 
     fit = _fit_sl4 if config.refit else None
     if fit is not None:
-        H, _, inliers, r2, refits = refine(H, X_a, X_b, threshold, fit, max(config.min_inliers, 5))
+        H, _, inliers, r2, refits = refine(H, X_a, X_b, threshold, fit, max(config.min_inliers, 5), config.max_refit_points)
     else:
         _, inliers, r2 = score_one(H, X_a, X_b, threshold)
         refits = 0
