@@ -34,19 +34,21 @@ NUM_QUERIES = 16
 FRAMES_PER_SUBMAP = 16
 
 
-def timed_runs(fn, repeats: int, warmup: int = 1) -> list[float]:
-    for _ in range(warmup):
+def interleaved_medians(cases: dict[str, callable], repeats: int) -> dict[str, list[float]]:
+    """Run every case once per round (after one warm-up round) and collect the times.
+
+    Interleaving spreads load from other processes evenly over the cases, so their ratios
+    stay meaningful on a shared machine.
+    """
+    for fn in cases.values():
         fn()
-    times = []
+    times: dict[str, list[float]] = {name: [] for name in cases}
     for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
+        for name, fn in cases.items():
+            start = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - start)
     return times
-
-
-def median_seconds(fn, repeats: int, warmup: int = 1) -> float:
-    return statistics.median(timed_runs(fn, repeats, warmup))
 
 
 def unit_rows(count: int, seed: int) -> np.ndarray:
@@ -55,23 +57,32 @@ def unit_rows(count: int, seed: int) -> np.ndarray:
     return rows
 
 
-def bench_throughput(repeats: int, batch: int) -> list[str]:
+def bench_throughput(repeats: int, batch: int, threads: int) -> list[str]:
     torch.manual_seed(0)
     model = SaladModel().eval()
     rng = np.random.default_rng(1)
     images = [rng.integers(0, 256, size=(480, 640, 3), dtype=np.uint8) for _ in range(batch)]
-    lines = [
-        "| input | batch | model only (images/s) | preprocessing + model (images/s) | preprocessing alone (ms/image) |",
-        "| --- | --- | --- | --- | --- |",
-    ]
+    tensors = {size: preprocess_images(images, size) for size in (224, 322)}
+
+    def model_only(size: int):
+        def run() -> None:
+            with torch.inference_mode():
+                model(tensors[size])
+
+        return run
+
+    cases = {}
     for size in (224, 322):
-        tensor = preprocess_images(images, size)
-        with torch.inference_mode():
-            model_s = median_seconds(lambda: model(tensor), repeats)
-        full_s = median_seconds(lambda: model.describe(images, image_size=size, batch_size=batch), repeats)
-        pre_s = median_seconds(lambda: preprocess_images(images, size), repeats)
+        cases[f"model {size}"] = model_only(size)
+        cases[f"describe {size}"] = lambda size=size: model.describe(images, image_size=size, batch_size=batch)
+        cases[f"preprocess {size}"] = lambda size=size: preprocess_images(images, size)
+    times = {name: statistics.median(runs) for name, runs in interleaved_medians(cases, repeats).items()}
+    lines = []
+    for size in (224, 322):
         lines.append(
-            f"| {size}x{size} | {batch} | {batch / model_s:.2f} | {batch / full_s:.2f} | {1000 * pre_s / batch:.1f} |"
+            f"| {threads} | {size}x{size} | {batch} | {batch / times[f'model {size}']:.2f} | {batch / times[f'describe {size}']:.2f} | "
+            f"{1000 * times[f'preprocess {size}'] / batch:.1f} | "
+            f"{times[f'model {size}'] / times['model 224']:.2f} |"
         )
         print(lines[-1], flush=True)
     return lines
@@ -92,44 +103,49 @@ def reference_style_search(stored: torch.Tensor, queries: torch.Tensor, max_subm
     return best
 
 
-def bench_queries(repeats: int) -> list[str]:
-    lines = [
-        f"| stored | float16 index (ms) | float16 fastest run (ms) | float32 index (ms) | float32 / float16 | reference-style loop (ms) | loop / float16 | float16 bytes/descriptor | float16 index memory (MiB) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
-    ]
-    for count in (1_000, 10_000, 50_000):
+def bench_queries(repeats: int, threads: int) -> list[str]:
+    counts = (1_000, 10_000, 50_000)
+    cases, loop_cases, checks, memory = {}, {}, {}, {}
+    for count in counts:
         stored = unit_rows(count, seed=3)
         submaps = np.arange(count) // FRAMES_PER_SUBMAP
         query_submap = int(submaps[-1]) + 1
         max_submap = query_submap - 1 - 2  # tau_interval = 2
-        # Revisits: noisy copies of eligible stored frames (L2 distance about 0.5 to their source).
+        # Revisits: noisy copies of eligible stored frames (L2 distance about 0.45 to their source).
         rng = np.random.default_rng(count)
         targets = rng.choice(int(np.sum(submaps <= max_submap)), size=NUM_QUERIES, replace=False)
         queries = stored[targets] + rng.standard_normal((NUM_QUERIES, DIM), dtype=np.float32) * (0.5 / DIM**0.5)
         queries /= np.linalg.norm(queries, axis=1, keepdims=True)
-        timings = {}
         for dtype in (torch.float16, torch.float32):
             index = DescriptorIndex(DIM, dtype=dtype, initial_capacity=count)
             index.add(stored, np.arange(count), submaps)
-            runs = timed_runs(lambda: index.search(queries, k=1, max_submap_id=max_submap, max_distance=0.8), repeats)
-            timings[dtype] = statistics.median(runs)
-            if dtype == torch.float16:
-                fastest16 = min(runs)
-                bytes_per = index.bytes_per_descriptor
-                memory_mib = count * bytes_per / 2**20
-                result16 = index.search(queries, k=1, max_submap_id=max_submap)
-            del index
+            search = lambda index=index, queries=queries, max_submap=max_submap: index.search(
+                queries, k=1, max_submap_id=max_submap, max_distance=0.8
+            )
+            cases[(count, dtype)] = search
+            found = search().frame_ids[:, 0]
+            assert list(found) == list(targets), "index missed a revisit"
+            memory[(count, dtype)] = index.bytes_per_descriptor
         if count <= 10_000:
             stored_t, queries_t = torch.from_numpy(stored), torch.from_numpy(queries)
-            loop_s = median_seconds(lambda: reference_style_search(stored_t, queries_t, max_submap), max(1, repeats // 2))
-            reference = reference_style_search(stored_t, queries_t, max_submap)
-            assert [r for _, r in reference] == list(result16.frame_ids[:, 0]) == list(targets), "index and loop disagree"
-            loop_text, ratio_text = f"{1000 * loop_s:.1f}", f"{loop_s / timings[torch.float16]:.0f}x"
+            loop = lambda s=stored_t, q=queries_t, m=max_submap: reference_style_search(s, q, m)
+            assert [r for _, r in loop()] == list(targets), "index and loop disagree"
+            loop_cases[count] = loop
+    times = interleaved_medians(cases, repeats)
+    loop_times = interleaved_medians(loop_cases, max(1, repeats // 3))
+    lines = []
+    for count in counts:
+        t16 = statistics.median(times[(count, torch.float16)])
+        t32 = statistics.median(times[(count, torch.float32)])
+        if count in loop_times:
+            t_loop = statistics.median(loop_times[count])
+            loop_text, ratio_text = f"{1000 * t_loop:.0f}", f"{t_loop / t16:.0f}x"
         else:
             loop_text, ratio_text = "not run", "-"
+        bytes_per = memory[(count, torch.float16)]
         lines.append(
-            f"| {count:,} | {1000 * timings[torch.float16]:.1f} | {1000 * fastest16:.1f} | {1000 * timings[torch.float32]:.1f} | "
-            f"{timings[torch.float32] / timings[torch.float16]:.2f} | {loop_text} | {ratio_text} | {bytes_per:,} | {memory_mib:.0f} |"
+            f"| {threads} | {count:,} | {1000 * t16:.1f} | {1000 * min(times[(count, torch.float16)]):.1f} | {1000 * t32:.1f} | "
+            f"{t32 / t16:.2f} | {loop_text} | {ratio_text} | {bytes_per:,} | {count * bytes_per / 2**20:.0f} |"
         )
         print(lines[-1], flush=True)
     return lines
@@ -137,18 +153,30 @@ def bench_queries(repeats: int) -> list[str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="torch thread counts to measure")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--batch", type=int, default=4, help="images per forward pass in the throughput test")
     parser.add_argument("--out", default="benchmarks/results/salad.md")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
     load_before = os.getloadavg()[0]
-
-    print("query time", flush=True)
-    query_lines = bench_queries(args.repeats)
-    print("throughput", flush=True)
-    throughput_lines = bench_throughput(max(3, args.repeats // 2), args.batch)
+    query_lines = [
+        "| threads | stored | float16 index (ms) | float16 fastest run (ms) | float32 index (ms) | float32 / float16 | "
+        "reference-style loop (ms) | loop / float16 | bytes/descriptor (float16) | index memory (float16, MiB) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    throughput_lines = [
+        "| threads | input | batch | model only (images/s) | preprocessing + model (images/s) | "
+        "preprocessing alone (ms/image) | time / time at 224 (model only) |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        print(f"query time, {threads} thread(s)", flush=True)
+        query_lines += bench_queries(args.repeats, threads)
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        print(f"throughput, {threads} thread(s)", flush=True)
+        throughput_lines += bench_throughput(max(3, args.repeats // 2), args.batch, threads)
 
     load_after = os.getloadavg()[0]
     command = "python benchmarks/bench_salad.py " + " ".join(sys.argv[1:])
@@ -157,27 +185,29 @@ def main() -> None:
             "# SALAD place recognition",
             "",
             "Machine: 2-core CPU, 24 GiB RAM, no GPU. Date: 2026-11-21. "
-            f"torch {torch.__version__}, {args.threads} threads, Python {platform.python_version()}.",
+            f"torch {torch.__version__}, Python {platform.python_version()}.",
             "",
             f"Command: `{command.strip()}`",
             "",
             f"The machine is shared: 1-minute load average {load_before:.1f} at the start and {load_after:.1f} "
-            "at the end of the run, so absolute times include contention; ratios come from the same process.",
+            "at the end of the run, so absolute times include contention; ratios come from the same process. "
+            "Under such load two OpenMP threads often wait on each other (a descheduled thread stalls the "
+            "other at every barrier), which is why one thread can be faster here than two.",
             "",
             "## Descriptor throughput (full DINOv2 ViT-B/14 + SALAD, random weights, float32, CPU)",
             "",
-            f"Median of {max(3, args.repeats // 2)} runs after one warm-up; inputs are 640x480 RGB images "
+            f"Median of {max(3, args.repeats // 2)} interleaved rounds after one warm-up round; inputs are 640x480 RGB images "
             "resized to a square (PIL bilinear).",
             "",
             *throughput_lines,
             "",
             f"## Query time: {NUM_QUERIES} queries, 8448-dim descriptors",
             "",
-            f"Median of {args.repeats} runs after one warm-up. The stored descriptors form submaps of "
+            f"Median of {args.repeats} interleaved rounds after one warm-up round (the reference-style loop: "
+            f"{max(1, args.repeats // 3)} rounds). The stored descriptors form submaps of "
             f"{FRAMES_PER_SUBMAP} frames; the latest 2 are excluded (tau_interval = 2), threshold 0.8, top 1 per query. "
             "The fastest run is the one least disturbed by other processes. The index answers all queries with one matrix product; the reference-style loop computes one "
-            "L2 distance call per query and stored submap in float32 and agrees with the float16 index on "
-            "every match. Memory per descriptor: the float16 row, its float32 norm, two int64 ids.",
+            "L2 distance call per query and stored submap in float32; both find every revisit. Memory per descriptor: the float16 row, its float32 norm, two int64 ids.",
             "",
             *query_lines,
             "",

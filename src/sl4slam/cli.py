@@ -41,7 +41,7 @@ ALIASES = {("submap", "tau_conf"): "--tau-conf", ("submap", "w_loop"): "--w-loop
 CHOICES = {
     ("", "frontend"): ["vggt", "simulated"],
     ("backend", "kind"): ["sl4", "sim3"],
-    ("retrieval", "kind"): ["orb", "salad", "none"],
+    ("retrieval", "kind"): ["auto", "salad", "orb", "none"],
     ("backend", "loop_kernel"): ["none", "huber", "cauchy"],
     ("vggt", "preprocess_mode"): ["crop", "pad"],
 }

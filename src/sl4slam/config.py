@@ -98,8 +98,9 @@ class BackendConfig:
 class RetrievalConfig:
     """Loop-closure retrieval (paper 4.3)."""
 
-    kind: str = "orb"
-    """"orb" (weights-free, CPU), "salad" (paper) or "none"."""
+    kind: str = "auto"
+    """"salad" (the paper's SALAD descriptors), "orb" (weights-free, CPU), "none", or "auto": SALAD
+    when its weights are found locally (``salad_weights`` or the user cache), else ORB."""
     tau_interval: int = 2
     """Most recent submaps excluded from retrieval (paper: 2)."""
     tau_desc: float = 0.8

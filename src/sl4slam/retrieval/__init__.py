@@ -3,6 +3,7 @@
 - ``orb``: weights-free ORB features, bag-of-words ranking and geometric verification (CPU, no download).
 - ``salad``: DINOv2 + SALAD descriptors as in the paper (needs ``dino_salad.ckpt``).
 - ``none``: no loop closure.
+- ``auto`` (default): SALAD when its weights are found locally, else ORB (with a notice).
 """
 
 from __future__ import annotations
@@ -20,6 +21,16 @@ log = logging.getLogger("sl4slam")
 def make_retrieval(config: RetrievalConfig, device: str = "cpu", seed: int = 0) -> Retrieval | None:
     """The retrieval named by ``config.kind``; ``None`` for "none"."""
     kind = config.kind
+    if kind == "auto":
+        from ..models.salad import find_salad_weights, salad_cache_dir
+
+        if config.salad_weights is not None or find_salad_weights() is not None:
+            kind = "salad"
+        else:
+            log.warning(
+                "SALAD weights not found (pass --salad-weights or put dino_salad.ckpt in %s); "
+                "using the weights-free ORB retrieval", salad_cache_dir())
+            kind = "orb"
     if kind == "none":
         return None
     if kind == "salad":
@@ -30,7 +41,7 @@ def make_retrieval(config: RetrievalConfig, device: str = "cpu", seed: int = 0) 
         from .orb import OrbRetrieval
 
         return OrbRetrieval(config, seed=seed)
-    raise UserError(f"unknown retrieval '{kind}': use --retrieval orb, salad or none")
+    raise UserError(f"unknown retrieval '{kind}': use --retrieval auto, salad, orb or none")
 
 
 __all__ = ["make_retrieval"]

@@ -1,0 +1,35 @@
+"""Assemble BENCHMARKS.md from the sections the benchmark scripts write to benchmarks/results/.
+
+    python benchmarks/collect.py
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ORDER = ["pipeline", "accuracy", "ransac", "backend", "render", "retrieval_orb", "salad", "vggt"]
+HEADER = """# Benchmarks
+
+Every figure below was measured by a script in `benchmarks/` (the command is given with each
+section) on the project's reference machine: 2 CPU cores, 24 GiB, no GPU. Timings are medians of
+repeated runs; comparisons are ratios measured side by side in one process. Regenerate this file
+with `python benchmarks/collect.py` after running the scripts.
+
+"""
+
+
+def main() -> None:
+    sections = []
+    for name in ORDER:
+        path = HERE / "results" / f"{name}.md"
+        if path.is_file():
+            text = path.read_text().strip()
+            # demote the sections' own top-level titles under this file's title
+            text = "\n".join("#" + line if line.startswith("#") else line for line in text.splitlines())
+            sections.append(text)
+    (HERE.parent / "BENCHMARKS.md").write_text(HEADER + "\n\n".join(sections) + "\n")
+
+
+if __name__ == "__main__":
+    main()
