@@ -34,15 +34,16 @@ NUM_QUERIES = 16
 FRAMES_PER_SUBMAP = 16
 
 
-def interleaved_medians(cases: dict[str, callable], repeats: int) -> dict[str, list[float]]:
-    """Run every case once per round (after one warm-up round) and collect the times.
+def interleaved_times(cases: dict, repeats: int) -> dict:
+    """Run every case (a name -> zero-argument callable) once per round, after one warm-up
+    round, and collect the seconds of each run per case.
 
     Interleaving spreads load from other processes evenly over the cases, so their ratios
     stay meaningful on a shared machine.
     """
     for fn in cases.values():
         fn()
-    times: dict[str, list[float]] = {name: [] for name in cases}
+    times = {name: [] for name in cases}
     for _ in range(repeats):
         for name, fn in cases.items():
             start = time.perf_counter()
@@ -76,7 +77,7 @@ def bench_throughput(repeats: int, batch: int, threads: int) -> list[str]:
         cases[f"model {size}"] = model_only(size)
         cases[f"describe {size}"] = lambda size=size: model.describe(images, image_size=size, batch_size=batch)
         cases[f"preprocess {size}"] = lambda size=size: preprocess_images(images, size)
-    times = {name: statistics.median(runs) for name, runs in interleaved_medians(cases, repeats).items()}
+    times = {name: statistics.median(runs) for name, runs in interleaved_times(cases, repeats).items()}
     lines = []
     for size in (224, 322):
         lines.append(
@@ -131,8 +132,8 @@ def bench_queries(repeats: int, threads: int) -> list[str]:
             loop = lambda s=stored_t, q=queries_t, m=max_submap: reference_style_search(s, q, m)
             assert [r for _, r in loop()] == list(targets), "index and loop disagree"
             loop_cases[count] = loop
-    times = interleaved_medians(cases, repeats)
-    loop_times = interleaved_medians(loop_cases, max(1, repeats // 3))
+    times = interleaved_times(cases, repeats)
+    loop_times = interleaved_times(loop_cases, max(1, repeats // 3))
     lines = []
     for count in counts:
         t16 = statistics.median(times[(count, torch.float16)])

@@ -36,7 +36,7 @@ def resolve_device(device: str) -> torch.device:
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if device.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError("--vggt-device cuda was requested but no CUDA GPU is available; use --vggt-device cpu")
+        raise UserError("--device cuda was requested but no CUDA GPU is available; use --device cpu")
     return torch.device(device)
 
 
