@@ -141,3 +141,24 @@ def test_static_camera_is_a_clear_error(world: Path) -> None:
     config = make_config(retrieval="none")
     with pytest.raises(UserError, match="keyframe"):
         SLAMPipeline(config, make_frontend(config)).run(ListSource(frames), progress=False)
+
+
+@pytest.mark.slow
+def test_cli_runs_with_salad_retrieval_from_a_random_checkpoint(world: Path, tmp_path: Path) -> None:
+    """Smoke test of `--retrieval salad --salad-weights PATH` (random weights: the loop count is meaningless)."""
+    import subprocess
+    import sys
+
+    from test_salad import write_random_salad_checkpoint
+
+    checkpoint = tmp_path / "dino_salad.ckpt"
+    write_random_salad_checkpoint(checkpoint, seed=0, lightning=False)
+    proc = subprocess.run(
+        [sys.executable, "-m", "sl4slam.cli", "run", str(world), "--out", str(tmp_path / "out"), "--frontend", "simulated",
+         "--tau-disparity", "12", "--retrieval", "salad", "--salad-weights", str(checkpoint), "--quiet",
+         "--no-save-keyframe-points"],
+        capture_output=True, text=True, timeout=1800)
+    assert proc.returncode == 0, proc.stderr
+    assert "loops" in proc.stdout
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["config"]["retrieval"]["kind"] == "salad" and summary["counts"]["loops"] >= 0

@@ -1,6 +1,6 @@
 """``sl4slam demo``: SL(4) versus Sim(3) on the synthetic world with a projectively distorted frontend.
 
-The synthetic world is rendered once and cached (``$XDG_CACHE_HOME/sl4slam`` or ``~/.cache/sl4slam``).
+The synthetic world is rendered once and cached (see :func:`sl4slam.paths.user_cache_dir`).
 The simulated frontend gives every submap its own projective distortion, as an uncalibrated
 reconstruction model does; SL(4) alignment absorbs it, Sim(3) cannot. Both runs close loops with
 the weights-free retrieval. The table compares ATE RMSE, loops and time; both maps and a
@@ -9,25 +9,19 @@ comparison plot are written.
 
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 
-import numpy as np
 
 from .config import SLAMConfig
-
-
-def cache_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "sl4slam"
+from .paths import user_cache_dir
 
 
 def synthetic_world(frames: int = 600, seed: int = 0, width: int = 320, height: int = 240) -> Path:
     """The cached synthetic TUM-format sequence (rendered on first use)."""
     from .synthetic import write_synthetic_sequence
 
-    path = cache_dir() / f"synthetic_seed{seed}_{frames}f_{width}x{height}"
+    path = user_cache_dir() / f"synthetic_seed{seed}_{frames}f_{width}x{height}"
     if not (path / "groundtruth.txt").is_file():
         print(f"rendering the synthetic world ({frames} frames, {width}x{height}) into {path} ...")
         write_synthetic_sequence(path, num_frames=frames, width=width, height=height, seed=seed)

@@ -103,6 +103,7 @@ class SLAMPipeline:
         self.edges: list[EdgeReport] = []
         self.timings: dict[str, float] = defaultdict(float)
         self.submap_seconds: list[dict[str, float]] = []
+        self.submap_loops: list[int] = []  # loop factors added with each submap
         self.num_submaps = 0
         self.num_frames = 0
         self._gt: dict[int, np.ndarray] = {}
@@ -175,14 +176,18 @@ class SLAMPipeline:
         seconds: dict[str, float] = {}
         cfg = self.config
 
+        loops_before = self.num_loops
         t0 = time.perf_counter()
+        described = getattr(self.retrieval, "describe_seconds", 0.0)
         loops: list[LoopCandidate] = []
         if self.retrieval is not None and cfg.submap.w_loop > 0:
             loops = self.retrieval.query(
                 [f.index for f in new_frames], [f.rgb for f in new_frames], submap_id, cfg.submap.w_loop
             )[: cfg.submap.w_loop]
             loops = [c for c in loops if c.match_frame in self._by_frame]
-        seconds["retrieval"] = time.perf_counter() - t0
+        # descriptor extraction (a model, like the frontend) is reported apart from the search
+        seconds["retrieval_describe"] = getattr(self.retrieval, "describe_seconds", 0.0) - described
+        seconds["retrieval"] = time.perf_counter() - t0 - seconds["retrieval_describe"]
 
         frames: list[Frame] = ([self._prior] if self._prior is not None else []) + list(new_frames)
         first_new = len(frames) - len(new_frames)
@@ -255,6 +260,7 @@ class SLAMPipeline:
         for key, value in seconds.items():
             self.timings[key] += value
         self.submap_seconds.append(seconds)
+        self.submap_loops.append(self.num_loops - loops_before)
         self.num_submaps += 1
         if self.on_submap is not None:
             self.on_submap(self, submap_id)

@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..paths import user_cache_dir
 from ..errors import MissingWeightsError, UserError
 from .dinov2 import DinoVisionTransformer
 
@@ -294,10 +295,8 @@ def float_images_to_uint8(images_chw: Tensor) -> np.ndarray:
 
 
 def salad_cache_dir() -> Path:
-    """``$SL4SLAM_CACHE`` or ``$XDG_CACHE_HOME/sl4slam`` (default ``~/.cache/sl4slam``)."""
-    if os.environ.get("SL4SLAM_CACHE"):
-        return Path(os.environ["SL4SLAM_CACHE"]).expanduser()
-    return Path(os.environ.get("XDG_CACHE_HOME", "~/.cache")).expanduser() / "sl4slam"
+    """Where the SALAD checkpoint is looked for and downloaded (:func:`sl4slam.paths.user_cache_dir`)."""
+    return user_cache_dir()
 
 
 def find_salad_weights(weights: str | os.PathLike | None = None) -> Path | None:

@@ -9,7 +9,6 @@
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 from ..config import RetrievalConfig
 from ..errors import UserError

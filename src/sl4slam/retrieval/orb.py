@@ -37,6 +37,7 @@ words <= 32 kB (int32 ids + float32 term frequencies); no images are kept.
 from __future__ import annotations
 
 import hashlib
+import time
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -179,6 +180,9 @@ class OrbRetrieval:
         self._tf_nnz = 0
         # Inverted file (words x keyframes) over the first keyframes; see _inverted_file().
         self._inverted: scipy.sparse.csr_matrix | None = None
+        self._idf: np.ndarray | None = None  # cached, see _idf_and_norms
+        self.describe_seconds = 0.0  # time spent extracting features (the "descriptor model")
+        self._stored_norm = np.zeros(0, np.float32)
         # Features of the latest query batch, keyed by frame index, reused by the following add().
         self._pending: dict[int, tuple[bytes, OrbFeatures]] = {}
 
@@ -226,7 +230,9 @@ class OrbRetrieval:
         cached = self._pending.get(int(frame_index))
         if cached is not None and cached[0] == key:
             return cached[1]
+        start = time.perf_counter()
         features = self.extract(image)
+        self.describe_seconds += time.perf_counter() - start
         self._pending[int(frame_index)] = (key, features)
         return features
 
@@ -269,6 +275,27 @@ class OrbRetrieval:
             shape=(len(self) - first_row, self.vocabulary_size),
         )
 
+    def _idf_and_norms(self) -> tuple[np.ndarray, np.ndarray]:
+        """Inverse document frequencies ``(V,)`` and stored tf-idf norms ``(num_stored,)``.
+
+        Both depend on the whole database, so they are recomputed only when it has grown by a
+        quarter since the last time (amortized O(1) per stored entry, like the inverted file);
+        keyframes added since are normed with the cached idf, which then describes at least
+        80 % of the database.
+        """
+        num_stored = len(self)
+        cached = 0 if self._idf is None else len(self._stored_norm)
+        if self._idf is None or num_stored - cached > max(64, cached // 4):
+            self._idf = np.log1p(num_stored / np.maximum(self._document_frequency, 1)).astype(np.float32)
+            term_frequency = self._tf_data[: self._tf_nnz]
+            self._stored_norm = np.sqrt(self._rows_csr(0, term_frequency * term_frequency) @ (self._idf**2))
+        elif cached < num_stored:
+            start = int(self._tf_indptr[cached])
+            term_frequency = self._tf_data[start : self._tf_nnz]
+            new_norms = np.sqrt(self._rows_csr(cached, term_frequency * term_frequency) @ (self._idf**2))
+            self._stored_norm = np.concatenate([self._stored_norm, new_norms])
+        return self._idf, self._stored_norm
+
     def _inverted_file(self) -> tuple[scipy.sparse.csr_matrix | None, int]:
         """Inverted file ``(V, rows)`` CSR of the first ``rows`` stored keyframes' term frequencies.
 
@@ -295,9 +322,7 @@ class OrbRetrieval:
         num_stored = len(self)
         if num_stored == 0 or len(query_features) == 0:
             return np.zeros((num_stored, len(query_features)), np.float32)
-        idf = np.log1p(num_stored / np.maximum(self._document_frequency, 1)).astype(np.float32)
-        term_frequency = self._tf_data[: self._tf_nnz]
-        stored_norm = np.sqrt(self._rows_csr(0, term_frequency * term_frequency) @ (idf * idf))
+        idf, stored_norm = self._idf_and_norms()
         query_rows = np.concatenate([[0], np.cumsum([len(f.word_ids) for f in query_features])])
         query_words = np.concatenate([f.word_ids for f in query_features])
         query_tf_idf = np.concatenate([f.word_tf for f in query_features]) * idf[query_words]

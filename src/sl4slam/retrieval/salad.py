@@ -9,6 +9,8 @@ query stays cheap as the map grows to tens of thousands of keyframes.
 
 from __future__ import annotations
 
+import time
+
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -207,6 +209,7 @@ class SaladRetrieval:
         self.model.to(self.device).eval()
         self.image_size = int(config.salad_image_size)
         self.batch_size = 16
+        self.describe_seconds = 0.0  # time spent in the descriptor network
         self.index = DescriptorIndex(self.model.output_dim, dtype=torch.float16, device=self.device)
         # The pipeline queries and then adds the same keyframes: keep the last query's
         # descriptors so each image goes through the network once.
@@ -216,7 +219,10 @@ class SaladRetrieval:
         """``(N, D)`` float32 descriptors of ``(H, W, 3)`` uint8 RGB images."""
         if len(images) == 0:
             return np.zeros((0, self.model.output_dim), dtype=np.float32)
-        return self.model.describe(images, image_size=self.image_size, batch_size=self.batch_size)
+        start = time.perf_counter()
+        descriptors = self.model.describe(images, image_size=self.image_size, batch_size=self.batch_size)
+        self.describe_seconds += time.perf_counter() - start
+        return descriptors
 
     def add(self, frame_indices: Sequence[int], images: Sequence[np.ndarray], submap_id: int) -> None:
         """Store the descriptors of ``images`` (frames ``frame_indices``) under ``submap_id``."""

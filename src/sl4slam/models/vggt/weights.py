@@ -23,7 +23,6 @@ import re
 from pathlib import Path
 
 import torch
-from torch import nn
 
 from ...errors import MissingWeightsError, UserError
 from .model import SKIPPED_PREFIXES, VGGT, VGGTModelConfig
