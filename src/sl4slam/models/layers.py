@@ -21,14 +21,15 @@ from torch import Tensor, nn
 class Mlp(nn.Module):
     """Two-layer perceptron ``fc2(GELU(fc1(x)))`` with exact (erf) GELU.
 
-    Maps ``(..., in_features)`` to ``(..., in_features)`` through ``hidden_features``.
+    Maps ``(..., in_features)`` to ``(..., out_features)`` (default ``in_features``) through
+    ``hidden_features``.
     """
 
-    def __init__(self, in_features: int, hidden_features: int, bias: bool = True) -> None:
+    def __init__(self, in_features: int, hidden_features: int, bias: bool = True, out_features: int | None = None) -> None:
         super().__init__()
         self.fc1 = nn.Linear(in_features, hidden_features, bias=bias)
         self.act = nn.GELU()
-        self.fc2 = nn.Linear(hidden_features, in_features, bias=bias)
+        self.fc2 = nn.Linear(hidden_features, out_features or in_features, bias=bias)
 
     def forward(self, x: Tensor) -> Tensor:
         return self.fc2(self.act(self.fc1(x)))

@@ -12,21 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..layers import Block
+from ..layers import Block, Mlp
 from .pose_encoding import POSE_ENCODING_DIM
-
-
-class PoseBranch(nn.Module):
-    """``fc2(GELU(fc1(x)))``: ``(..., dim)`` -> ``(..., out_dim)`` through ``dim // 2`` hidden units."""
-
-    def __init__(self, dim: int, out_dim: int) -> None:
-        super().__init__()
-        self.fc1 = nn.Linear(dim, dim // 2)
-        self.act = nn.GELU()
-        self.fc2 = nn.Linear(dim // 2, out_dim)
-
-    def forward(self, x: Tensor) -> Tensor:
-        return self.fc2(self.act(self.fc1(x)))
 
 
 def activate_pose(raw: Tensor) -> Tensor:
@@ -69,7 +56,7 @@ class CameraHead(nn.Module):
         self.embed_pose = nn.Linear(POSE_ENCODING_DIM, dim_in)
         self.poseLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(dim_in, 3 * dim_in))
         self.adaln_norm = nn.LayerNorm(dim_in, elementwise_affine=False, eps=1e-6)
-        self.pose_branch = PoseBranch(dim_in, POSE_ENCODING_DIM)
+        self.pose_branch = Mlp(dim_in, dim_in // 2, out_features=POSE_ENCODING_DIM)
 
     def forward(self, camera_tokens: Tensor) -> list[Tensor]:
         """``camera_tokens``: ``(B, S, 2C)`` -> list of ``num_iterations`` activated encodings ``(B, S, 9)``."""
