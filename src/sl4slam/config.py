@@ -58,6 +58,9 @@ class AlignmentConfig:
     """RANSAC hypotheses (paper: 300)."""
     inlier_threshold: float = 0.01
     """Inlier distance in submap units (paper: 0.01)."""
+    max_correspondences: int = 30000
+    """Pixels of the shared frame passed to the alignment; beyond this an evenly strided subset
+    (about a quarter of a 518x294 frame's confident pixels) — as accurate, several times faster."""
     max_points: int = 10000
     """Correspondences each hypothesis is scored on; larger sets are subsampled (seeded). The
     final inlier mask is computed on every point."""

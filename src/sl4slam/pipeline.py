@@ -201,7 +201,11 @@ class SLAMPipeline:
 
         t0 = time.perf_counter()
         mask = confidence_mask(prediction.confidence, prediction.depth, cfg.submap.tau_conf)
-        points = submap_points(prediction, cfg.submap.use_point_head)
+        # Points are needed now only for the frames that are aligned (the shared frame, the last
+        # new keyframe for the next submap, loop frames); the map is rebuilt from stored depth.
+        last = first_new + len(new_frames) - 1
+        needed = sorted({0, last, *range(first_new + len(new_frames), len(frames))})
+        points = dict(zip(needed, submap_points(prediction, cfg.submap.use_point_head, needed)))
         seconds["points"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -249,7 +253,6 @@ class SLAMPipeline:
             stored = StoredKeyframe.from_prediction(prediction, mask, slot, frame.index, frame.timestamp, submap_id)
             self.keyframes.append(stored)
             self._by_frame[frame.index] = stored
-        last = first_new + len(new_frames) - 1
         self._prior = frames[last]
         self._prior_points = points[last]
         self._prior_mask = mask[last]
@@ -270,9 +273,12 @@ class SLAMPipeline:
 
         ``camera_a`` / ``camera_b`` are that frame's ``(K, T_cam_submap)`` in each submap.
         """
-        both = mask_a & mask_b
-        X_a = X_a_map[both].astype(np.float64)
-        X_b = X_b_map[both].astype(np.float64)
+        both = np.flatnonzero(mask_a & mask_b)
+        limit = self.config.alignment.max_correspondences
+        if limit > 0 and len(both) > limit:
+            both = both[:: -(-len(both) // limit)]  # evenly strided over the frame
+        X_a = X_a_map.reshape(-1, 3)[both].astype(np.float64)
+        X_b = X_b_map.reshape(-1, 3)[both].astype(np.float64)
         if len(X_a) < MIN_ALIGNMENT_POINTS:
             raise UserError(
                 f"only {len(X_a)} confident pixels shared between submaps; the frontend's confidence is too "

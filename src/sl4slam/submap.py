@@ -33,11 +33,15 @@ def confidence_mask(confidence: np.ndarray, depth: np.ndarray, percentile: float
     return valid & (confidence > threshold)
 
 
-def submap_points(prediction: SubmapPrediction, use_point_head: bool = False) -> np.ndarray:
-    """Dense points ``(S, H, W, 3)`` float32 in the submap frame (first camera)."""
+def submap_points(prediction: SubmapPrediction, use_point_head: bool = False, slots=None) -> np.ndarray:
+    """Dense points ``(S', H, W, 3)`` float32 in the submap frame (first camera).
+
+    ``slots`` selects frames (all by default): the pipeline only needs the frames it aligns.
+    """
+    slots = slice(None) if slots is None else list(slots)
     if use_point_head and prediction.points is not None:
-        return prediction.points.astype(np.float32, copy=False)
-    return unproject_depth(prediction.depth, prediction.K, prediction.T_cam_submap)
+        return prediction.points[slots].astype(np.float32, copy=False)
+    return unproject_depth(prediction.depth[slots], prediction.K[slots], prediction.T_cam_submap[slots])
 
 
 @dataclass
