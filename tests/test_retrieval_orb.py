@@ -229,3 +229,20 @@ def test_similarity_matches_dense_tf_idf():
     similarity = retrieval.similarity(queries)
     np.testing.assert_allclose(similarity, dense_reference(75, idf_count=70), rtol=1e-4, atol=1e-6)
     assert int(np.argmax(similarity[:, 0])) == 3 and similarity[3, 0] == pytest.approx(1.0, abs=1e-5)
+
+
+def test_coarse_ranking_keeps_the_revisit_in_a_large_database():
+    """Past COARSE_CANDIDATES stored keyframes, queries are ranked coarsely first (hashed words, one
+    matrix product); the exact scores of the surviving rows equal the full tf-idf ones."""
+    from sl4slam.retrieval.orb import COARSE_CANDIDATES
+
+    retrieval = OrbRetrieval(RetrievalConfig(orb_features=500))
+    images = [random_texture(seed, (240, 320, 3)) for seed in range(300, 300 + 2 * COARSE_CANDIDATES)]
+    retrieval.add(list(range(len(images))), images, submap_id=0)
+    target = 37
+    query = mild_warp(images[target])
+    found = retrieval.query([10_000], [query], submap_id=5, max_results=1)
+    assert [c.match_frame for c in found] == [target]
+    features = [retrieval.extract(query)]
+    rows = np.arange(len(images))
+    np.testing.assert_allclose(retrieval.similarity_rows(features, rows), retrieval.similarity(features), rtol=1e-5, atol=1e-7)

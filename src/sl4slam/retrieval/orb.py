@@ -111,6 +111,13 @@ def match_descriptors(
     return query_idx, nearest[query_idx]
 
 
+
+# Coarse ranking: each keyframe's term frequencies hashed into a short dense vector, so that a
+# query batch is ranked against the whole database by one matrix product; only the best
+# COARSE_CANDIDATES rows per query are then scored exactly (tf-idf through the sparse rows).
+GLOBAL_DIM = 1024
+COARSE_CANDIDATES = 64
+
 class OrbRetrieval:
     """Place recognition with ORB features (implements ``sl4slam.types.Retrieval``, name "orb").
 
@@ -181,6 +188,7 @@ class OrbRetrieval:
         # Inverted file (words x keyframes) over the first keyframes; see _inverted_file().
         self._inverted: scipy.sparse.csr_matrix | None = None
         self._idf: np.ndarray | None = None  # cached, see _idf_and_norms
+        self._global = np.zeros((0, GLOBAL_DIM), np.float32)  # hashed tf rows, grown geometrically
         self.describe_seconds = 0.0  # time spent extracting features (the "descriptor model")
         self._stored_norm = np.zeros(0, np.float32)
         # Features of the latest query batch, keyed by frame index, reused by the following add().
@@ -249,7 +257,35 @@ class OrbRetrieval:
             self._descriptors.append(features.descriptors)
             self._append_tf_row(features.word_ids, features.word_tf)
             self._document_frequency[features.word_ids] += 1
+            self._append_global_row(_global_vector(features))
         self._submap_ids = np.concatenate([self._submap_ids, np.full(len(batch), int(submap_id), np.int64)])
+
+    def _append_global_row(self, row: np.ndarray) -> None:
+        count = len(self._frame_indices) - 1  # the row's position (frame index already appended)
+        if count >= len(self._global):
+            grown = np.zeros((max(64, 2 * len(self._global)), GLOBAL_DIM), np.float32)
+            grown[: len(self._global)] = self._global
+            self._global = grown
+        self._global[count] = row
+
+    def similarity_rows(self, query_features: Sequence[OrbFeatures], rows: np.ndarray) -> np.ndarray:
+        """tf-idf cosine similarity ``(len(rows), num_queries)`` of the stored keyframes ``rows`` only
+        (same values as the matching rows of :meth:`similarity`)."""
+        idf, stored_norm = self._idf_and_norms()
+        query_rows = np.concatenate([[0], np.cumsum([len(f.word_ids) for f in query_features])])
+        query_words = np.concatenate([f.word_ids for f in query_features])
+        query_tf_idf = np.concatenate([f.word_tf for f in query_features]) * idf[query_words]
+        query_norm = np.zeros(len(query_features), np.float32)
+        nonempty = np.diff(query_rows) > 0
+        if nonempty.any():
+            query_norm[nonempty] = np.sqrt(np.add.reduceat(query_tf_idf * query_tf_idf, query_rows[:-1][nonempty]))
+        weighted = scipy.sparse.csr_matrix(
+            (query_tf_idf * idf[query_words], query_words, query_rows),
+            shape=(len(query_features), self.vocabulary_size),
+        )
+        dots = (self._rows_csr(0)[rows] @ weighted.T).toarray()
+        denominator = np.maximum(stored_norm[rows][:, None] * query_norm[None, :], 1e-12)
+        return (dots / denominator).astype(np.float32)
 
     def _append_tf_row(self, word_ids: np.ndarray, word_tf: np.ndarray) -> None:
         needed = self._tf_nnz + len(word_ids)
@@ -390,7 +426,13 @@ class OrbRetrieval:
         eligible = np.flatnonzero(self._submap_ids <= int(submap_id) - 1 - int(self.config.tau_interval))
         if len(eligible) == 0:
             return []
-        scores = self.similarity(batch)[eligible]  # (num_eligible, num_queries)
+        if len(eligible) > COARSE_CANDIDATES:
+            # coarse: one dense product over the database; fine: exact tf-idf on the best rows
+            queries = np.stack([_global_vector(f) for f in batch])
+            coarse = self._global[eligible] @ queries.T  # (num_eligible, num_queries)
+            best = np.argpartition(-coarse, COARSE_CANDIDATES - 1, axis=0)[:COARSE_CANDIDATES]
+            eligible = eligible[np.unique(best)]
+        scores = self.similarity_rows(batch, eligible)  # (num_candidates, num_queries)
         budget = float(self.config.orb_features)
         flat = np.argsort(-scores, axis=None, kind="stable")[: int(self.config.orb_candidates)]
         best: dict[int, tuple[int, int]] = {}  # query column -> (inliers, stored position)
@@ -427,3 +469,10 @@ def _check_lengths(frame_indices: Sequence[int], images: Sequence[np.ndarray]) -
         raise UserError(
             f"retrieval got {len(frame_indices)} frame indices but {len(images)} images; pass one image per index"
         )
+
+
+def _global_vector(features: OrbFeatures) -> np.ndarray:
+    """Term frequencies hashed into ``GLOBAL_DIM`` buckets, L2-normalized: ``(GLOBAL_DIM,)`` float32."""
+    vector = np.bincount(features.word_ids % GLOBAL_DIM, weights=features.word_tf, minlength=GLOBAL_DIM)
+    norm = np.linalg.norm(vector)
+    return (vector / norm if norm > 0 else vector).astype(np.float32)
