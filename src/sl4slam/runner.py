@@ -26,6 +26,8 @@ def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig, r
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"--out {out_dir} exists and is not a folder; choose another output folder")
     source = open_source(str(source_path), stride=config.stride, max_frames=config.max_frames)
+    if len(source) < 2:
+        raise UserError(f"{source.name}: {len(source)} frame(s) found; SLAM needs at least 2 frames")
     cache_dir = out_dir / "frontend_cache" if config.output.cache_frontend else None
     frontend = make_frontend(config, replay_dir=replay_dir, cache_dir=cache_dir)
     retrieval = make_retrieval(config.retrieval, device=_device(config), seed=config.alignment.seed)
