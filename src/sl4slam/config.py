@@ -121,7 +121,8 @@ class RetrievalConfig:
     geometrically verified (a fixed budget, so the cost does not grow with the submap size)."""
     min_loop_inlier_ratio: float = 0.3
     """A retrieved loop is added to the graph only if its alignment keeps this inlier fraction
-    (and needed no fallback): one false loop bends the whole map."""
+    (or half the odometry's median, if that is lower) and needed no fallback: one false loop
+    bends the whole map."""
 
 
 @dataclass

@@ -237,7 +237,7 @@ class SLAMPipeline:
             except ValueError as exc:
                 log.info("loop %d->%d rejected: %s", old.submap_id, submap_id, exc)
                 continue
-            if alignment.inlier_ratio < cfg.retrieval.min_loop_inlier_ratio or alignment.fallback:
+            if alignment.inlier_ratio < self._loop_inlier_gate() or alignment.fallback:
                 log.info("loop %d->%d rejected: inlier ratio %.2f", old.submap_id, submap_id, alignment.inlier_ratio)
                 continue
             self._record_edge("loop", old.submap_id, submap_id, candidate.match_frame, alignment)
@@ -305,6 +305,14 @@ class SLAMPipeline:
             return self._align(*args, **kwargs)
         except ValueError as exc:
             raise UserError(f"cannot align consecutive submaps: {exc}") from None
+
+    def _loop_inlier_gate(self) -> float:
+        """Inlier ratio a loop alignment must reach: ``min_loop_inlier_ratio``, or half the median
+        ratio of the odometry so far when the model fits consecutive submaps worse than that
+        (Sim(3) under a projective distortion): a loop must fit about as well as odometry does."""
+        odometry = [e.inlier_ratio for e in self.edges if e.kind == "odometry" and not e.fallback]
+        gate = self.config.retrieval.min_loop_inlier_ratio
+        return min(gate, 0.5 * float(np.median(odometry))) if odometry else gate
 
     def _as_node_measurement(self, H: np.ndarray) -> np.ndarray:
         if self.config.backend.kind == "sl4":
