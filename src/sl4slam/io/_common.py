@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import re
+from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -87,7 +88,7 @@ def select(items: Sequence, stride: int, max_frames: int) -> list:
     return chosen[: int(max_frames)] if max_frames else chosen
 
 
-class IndexedSource:
+class IndexedSource(ABC):
     """Base of the sources whose frames are known up front (folders, datasets).
 
     Subclasses fill ``self._items`` (one entry per output frame, already strided) and
@@ -103,8 +104,9 @@ class IndexedSource:
     def __len__(self) -> int:
         return len(self._items)
 
-    def _load(self, position: int) -> Frame | None:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def _load(self, position: int) -> Frame | None:
+        """The frame at ``position``, or ``None`` when that input cannot be read."""
 
     def _describe(self, position: int) -> str:
         return f"frame {position}"
