@@ -268,10 +268,9 @@ class OrbRetrieval:
             self._global = grown
         self._global[count] = row
 
-    def similarity_rows(self, query_features: Sequence[OrbFeatures], rows: np.ndarray) -> np.ndarray:
-        """tf-idf cosine similarity ``(len(rows), num_queries)`` of the stored keyframes ``rows`` only
-        (same values as the matching rows of :meth:`similarity`)."""
-        idf, stored_norm = self._idf_and_norms()
+    def _query_weights(self, query_features: Sequence[OrbFeatures], idf: np.ndarray) -> tuple[scipy.sparse.csr_matrix, np.ndarray]:
+        """Queries as ``(num_queries, V)`` CSR rows ``tf_q * idf^2`` (with the raw stored tf this gives
+        the tf-idf dot product) and their tf-idf norms ``(num_queries,)``."""
         query_rows = np.concatenate([[0], np.cumsum([len(f.word_ids) for f in query_features])])
         query_words = np.concatenate([f.word_ids for f in query_features])
         query_tf_idf = np.concatenate([f.word_tf for f in query_features]) * idf[query_words]
@@ -283,6 +282,13 @@ class OrbRetrieval:
             (query_tf_idf * idf[query_words], query_words, query_rows),
             shape=(len(query_features), self.vocabulary_size),
         )
+        return weighted, query_norm
+
+    def similarity_rows(self, query_features: Sequence[OrbFeatures], rows: np.ndarray) -> np.ndarray:
+        """tf-idf cosine similarity ``(len(rows), num_queries)`` of the stored keyframes ``rows`` only
+        (same values as the matching rows of :meth:`similarity`)."""
+        idf, stored_norm = self._idf_and_norms()
+        weighted, query_norm = self._query_weights(query_features, idf)
         dots = (self._rows_csr(0)[rows] @ weighted.T).toarray()
         denominator = np.maximum(stored_norm[rows][:, None] * query_norm[None, :], 1e-12)
         return (dots / denominator).astype(np.float32)
@@ -359,18 +365,7 @@ class OrbRetrieval:
         if num_stored == 0 or len(query_features) == 0:
             return np.zeros((num_stored, len(query_features)), np.float32)
         idf, stored_norm = self._idf_and_norms()
-        query_rows = np.concatenate([[0], np.cumsum([len(f.word_ids) for f in query_features])])
-        query_words = np.concatenate([f.word_ids for f in query_features])
-        query_tf_idf = np.concatenate([f.word_tf for f in query_features]) * idf[query_words]
-        query_norm = np.zeros(len(query_features), np.float32)
-        nonempty = np.diff(query_rows) > 0
-        if nonempty.any():
-            query_norm[nonempty] = np.sqrt(np.add.reduceat(query_tf_idf * query_tf_idf, query_rows[:-1][nonempty]))
-        # (num_queries, V) rows tf_q * idf^2: with the raw stored tf this gives the tf-idf dot product.
-        weighted = scipy.sparse.csr_matrix(
-            (query_tf_idf * idf[query_words], query_words, query_rows),
-            shape=(len(query_features), self.vocabulary_size),
-        )
+        weighted, query_norm = self._query_weights(query_features, idf)
         inverted, covered = self._inverted_file()
         dots = np.zeros((num_stored, len(query_features)), np.float32)
         if covered:
