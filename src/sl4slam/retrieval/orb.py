@@ -289,7 +289,7 @@ class OrbRetrieval:
         (same values as the matching rows of :meth:`similarity`)."""
         idf, stored_norm = self._idf_and_norms()
         weighted, query_norm = self._query_weights(query_features, idf)
-        dots = (self._rows_csr(0)[rows] @ weighted.T).toarray()
+        dots = (self._selected_rows_csr(rows) @ weighted.T).toarray()
         denominator = np.maximum(stored_norm[rows][:, None] * query_norm[None, :], 1e-12)
         return (dots / denominator).astype(np.float32)
 
@@ -337,6 +337,20 @@ class OrbRetrieval:
             new_norms = np.sqrt(self._rows_csr(cached, term_frequency * term_frequency) @ (self._idf**2))
             self._stored_norm = np.concatenate([self._stored_norm, new_norms])
         return self._idf, self._stored_norm
+
+    def _selected_rows_csr(self, rows: np.ndarray) -> scipy.sparse.csr_matrix:
+        """Stored rows ``rows`` of the term-frequency matrix as ``(len(rows), V)`` CSR, gathered
+        straight from the buffers (cost follows those rows' entries, not the database's)."""
+        rows = np.asarray(rows, dtype=np.int64)
+        starts, stops = self._tf_indptr[rows], self._tf_indptr[rows + 1]
+        lengths = stops - starts
+        indptr = np.concatenate([[0], np.cumsum(lengths)])
+        # positions starts[i] .. stops[i]-1 for every selected row, without a Python loop
+        positions = np.repeat(starts - indptr[:-1], lengths) + np.arange(indptr[-1])
+        return scipy.sparse.csr_matrix(
+            (self._tf_data[positions], self._tf_indices[positions], indptr),
+            shape=(len(rows), self.vocabulary_size),
+        )
 
     def _inverted_file(self) -> tuple[scipy.sparse.csr_matrix | None, int]:
         """Inverted file ``(V, rows)`` CSR of the first ``rows`` stored keyframes' term frequencies.
@@ -424,7 +438,10 @@ class OrbRetrieval:
         if len(eligible) > COARSE_CANDIDATES:
             # coarse: one dense product over the database; fine: exact tf-idf on the best rows
             queries = np.stack([_global_vector(f) for f in batch])
-            coarse = self._global[eligible] @ queries.T  # (num_eligible, num_queries)
+            # eligible rows are a prefix while submap ids arrive in order: no copy then
+            prefix = eligible[-1] == len(eligible) - 1
+            stored = self._global[: len(eligible)] if prefix else self._global[eligible]
+            coarse = stored @ queries.T  # (num_eligible, num_queries)
             best = np.argpartition(-coarse, COARSE_CANDIDATES - 1, axis=0)[:COARSE_CANDIDATES]
             eligible = eligible[np.unique(best)]
         scores = self.similarity_rows(batch, eligible)  # (num_candidates, num_queries)
