@@ -237,9 +237,9 @@ def test_coarse_ranking_keeps_the_revisit_in_a_large_database():
     from sl4slam.retrieval.orb import COARSE_CANDIDATES
 
     retrieval = OrbRetrieval(RetrievalConfig(orb_features=500))
-    images = [random_texture(seed, (240, 320, 3)) for seed in range(300, 300 + 2 * COARSE_CANDIDATES)]
+    images = [random_texture(seed, (240, 320, 3)) for seed in range(300, 300 + 4 * COARSE_CANDIDATES + 8)]
     retrieval.add(list(range(len(images))), images, submap_id=0)
-    target = 37
+    target = 2 * COARSE_CANDIDATES + 5
     query = mild_warp(images[target])
     found = retrieval.query([10_000], [query], submap_id=5, max_results=1)
     assert [c.match_frame for c in found] == [target]

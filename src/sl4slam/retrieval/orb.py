@@ -116,7 +116,7 @@ def match_descriptors(
 # query batch is ranked against the whole database by one matrix product; only the best
 # COARSE_CANDIDATES rows per query are then scored exactly (tf-idf through the sparse rows).
 GLOBAL_DIM = 1024
-COARSE_CANDIDATES = 64
+COARSE_CANDIDATES = 16
 
 class OrbRetrieval:
     """Place recognition with ORB features (implements ``sl4slam.types.Retrieval``, name "orb").
@@ -289,7 +289,7 @@ class OrbRetrieval:
         (same values as the matching rows of :meth:`similarity`)."""
         idf, stored_norm = self._idf_and_norms()
         weighted, query_norm = self._query_weights(query_features, idf)
-        dots = (self._selected_rows_csr(rows) @ weighted.T).toarray()
+        dots = self._dot_rows(rows, weighted)
         denominator = np.maximum(stored_norm[rows][:, None] * query_norm[None, :], 1e-12)
         return (dots / denominator).astype(np.float32)
 
@@ -337,6 +337,29 @@ class OrbRetrieval:
             new_norms = np.sqrt(self._rows_csr(cached, term_frequency * term_frequency) @ (self._idf**2))
             self._stored_norm = np.concatenate([self._stored_norm, new_norms])
         return self._idf, self._stored_norm
+
+    def _dot_rows(self, rows: np.ndarray, weighted: scipy.sparse.csr_matrix) -> np.ndarray:
+        """``(len(rows), num_queries)`` dot products of stored rows with the query rows ``weighted``.
+
+        Only the words the queries contain matter, so the stored entries are remapped onto that
+        compact vocabulary and multiplied with a small dense matrix (a sparse-times-sparse product
+        over the full 2^18-word vocabulary costs several times more).
+        """
+        selected = self._selected_rows_csr(rows)
+        query_words = np.unique(weighted.indices)
+        lookup = np.full(self.vocabulary_size, -1, np.int64)
+        lookup[query_words] = np.arange(len(query_words))
+        compact_query = np.zeros((len(query_words), weighted.shape[0]), np.float32)
+        query_of_entry = np.repeat(np.arange(weighted.shape[0]), np.diff(weighted.indptr))
+        np.add.at(compact_query, (lookup[weighted.indices], query_of_entry), weighted.data)
+        columns = lookup[selected.indices]
+        shared = columns >= 0
+        row_of_entry = np.repeat(np.arange(len(rows)), np.diff(selected.indptr))[shared]
+        compact_rows = scipy.sparse.csr_matrix(
+            (selected.data[shared], columns[shared], np.searchsorted(row_of_entry, np.arange(len(rows) + 1))),
+            shape=(len(rows), len(query_words)),
+        )
+        return compact_rows @ compact_query
 
     def _selected_rows_csr(self, rows: np.ndarray) -> scipy.sparse.csr_matrix:
         """Stored rows ``rows`` of the term-frequency matrix as ``(len(rows), V)`` CSR, gathered
