@@ -29,55 +29,17 @@ import numpy as np
 
 from sl4slam.alignment import estimate_sl4
 from sl4slam.config import AlignmentConfig
-from sl4slam.geometry import apply_transform, normalize_sl4
+from sl4slam.geometry import apply_transform
+from sl4slam.synthetic.correspondences import frame_correspondences, near_identity_sl4
 
 RESULTS = Path(__file__).resolve().parent / "results" / "ransac.md"
 HEIGHT, WIDTH = 294, 518
 
 
-def rotation(rng: np.random.Generator, max_angle: float) -> np.ndarray:
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    angle = rng.uniform(-max_angle, max_angle)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
-
-
-def near_identity_sl4(rng: np.random.Generator) -> np.ndarray:
-    while True:
-        H = np.eye(4)
-        H[:3, :3] = rng.uniform(0.7, 1.4) * rotation(rng, 0.3) @ (np.eye(3) + rng.uniform(-0.1, 0.1, (3, 3)))
-        H[:3, 3] = rng.uniform(-0.3, 0.3, 3)
-        H[3, :3] = rng.choice([-1.0, 1.0], 3) * rng.uniform(0.05, 0.2, 3)
-        if np.linalg.det(H) > 0:
-            return normalize_sl4(H)
-
-
 def frame_points(rng: np.random.Generator, H_a_b: np.ndarray, outlier_fraction: float, noise: float = 0.002):
-    """``X_a (N, 3)``, ``X_b (N, 3)``, ``is_inlier (N,)`` for one frame's confident pixels."""
-    v, u = np.mgrid[0:HEIGHT, 0:WIDTH].astype(np.float64)
-    focal = 0.8 * WIDTH
-    x, y = (u - WIDTH / 2) / focal, (v - HEIGHT / 2) / focal
-    depth = 1.7 + 1.6 * y + 0.35 * np.sin(8.2 * u / WIDTH + 0.4) * np.cos(5.0 * v / HEIGHT) + 0.25 * np.cos(9 * x)
-    depth = np.clip(depth, 0.5, 3.0)
-    X_cam = np.stack([x * depth, y * depth, depth], axis=-1)
-    X_b = X_cam @ rotation(rng, 0.5).T + rng.uniform(-0.5, 0.5, 3)
-    confidence = np.sin(u / 37.0 + rng.uniform(0, 6)) * np.cos(v / 23.0 + rng.uniform(0, 6))
-    confidence += 0.3 * rng.normal(size=u.shape)
-    confident = confidence > np.quantile(confidence, 0.32)
-    outlier = np.zeros((HEIGHT, WIDTH), dtype=bool)
-    while outlier[confident].mean() < outlier_fraction:
-        centre = rng.uniform([0, 0], [HEIGHT, WIDTH])
-        radius = rng.uniform(0.03, 0.12) * WIDTH
-        outlier |= (v - centre[0]) ** 2 + (u - centre[1]) ** 2 < radius**2
-    X_a = apply_transform(H_a_b, X_b)
-    cell = (v // 40 * 1000 + u // 40).astype(int)[outlier]
-    _, cell_index = np.unique(cell, return_inverse=True)
-    shifts = rng.normal(size=(cell_index.max() + 1 if cell.size else 0, 3))
-    shifts *= rng.uniform(0.05, 0.3, (len(shifts), 1)) / np.linalg.norm(shifts, axis=1, keepdims=True)
-    X_a[outlier] += shifts[cell_index]
-    X_a += rng.normal(scale=noise, size=X_a.shape)
-    return X_a[confident], X_b[confident], ~outlier[confident]
+    """``X_a (N, 3)``, ``X_b (N, 3)``, ``is_inlier (N,)`` for one 518x294 frame's confident pixels."""
+    return frame_correspondences(rng, H_a_b, HEIGHT, WIDTH, noise, outlier_fraction,
+                                 confidence_period_px=(37.0, 23.0), outlier_cell_px=40)
 
 
 def reference_ransac(X_a: np.ndarray, X_b: np.ndarray, iterations: int = 300, threshold: float = 0.01, seed: int = 0) -> np.ndarray:

@@ -14,28 +14,8 @@ from sl4slam.alignment import (
     sim3_from_shared_frame,
 )
 from sl4slam.config import AlignmentConfig
+from sl4slam.synthetic.correspondences import frame_correspondences, near_identity_sl4, random_rotation
 from sl4slam.geometry import apply_transform, normalize_sl4, se3_inverse
-
-
-def rotation(rng: np.random.Generator, max_angle: float) -> np.ndarray:
-    """Random rotation ``(3, 3)`` with angle below ``max_angle`` (Rodrigues)."""
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    angle = rng.uniform(-max_angle, max_angle)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
-
-
-def near_identity_sl4(rng: np.random.Generator) -> np.ndarray:
-    """An SL(4) map like the projective ambiguity between two submaps: rotation, scale, shear,
-    translation and a perspective row with entries of magnitude 0.05-0.2."""
-    while True:
-        H = np.eye(4)
-        H[:3, :3] = rng.uniform(0.7, 1.4) * rotation(rng, 0.3) @ (np.eye(3) + rng.uniform(-0.1, 0.1, (3, 3)))
-        H[:3, 3] = rng.uniform(-0.3, 0.3, 3)
-        H[3, :3] = rng.choice([-1.0, 1.0], 3) * rng.uniform(0.05, 0.2, 3)
-        if np.linalg.det(H) > 0:
-            return normalize_sl4(H)
 
 
 def frame_points(
@@ -46,38 +26,8 @@ def frame_points(
     noise: float = 0.002,
     outlier_fraction: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One camera frame's confident points in submaps ``b`` and ``a``.
-
-    Depth 0.5-3 units on a smooth non-planar surface, a random camera pose in submap ``b``,
-    ``X_a = H_a_b X_b`` plus Gaussian noise, ~68 % of pixels kept by a blotchy confidence mask,
-    and outliers in image-space blobs, each blob shifted coherently by 0.05-0.3 units.
-
-    Returns:
-        ``X_a (N, 3)``, ``X_b (N, 3)``, ``is_inlier (N,)``.
-    """
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-    focal = 0.8 * width
-    x, y = (u - width / 2) / focal, (v - height / 2) / focal
-    depth = 1.7 + 1.6 * y + 0.35 * np.sin(8.2 * u / width + 0.4) * np.cos(5.0 * v / height) + 0.25 * np.cos(9 * x)
-    depth = np.clip(depth, 0.5, 3.0)
-    X_cam = np.stack([x * depth, y * depth, depth], axis=-1)
-    X_b = X_cam @ rotation(rng, 0.5).T + rng.uniform(-0.5, 0.5, 3)
-    confidence = np.sin(u / 9.0 + rng.uniform(0, 6)) * np.cos(v / 6.0 + rng.uniform(0, 6)) + 0.3 * rng.normal(size=u.shape)
-    confident = confidence > np.quantile(confidence, 0.32)
-    outlier = np.zeros((height, width), dtype=bool)
-    while outlier[confident].mean() < outlier_fraction:
-        centre = rng.uniform([0, 0], [height, width])
-        radius = rng.uniform(0.03, 0.12) * width
-        outlier |= (v - centre[0]) ** 2 + (u - centre[1]) ** 2 < radius**2
-    X_a = apply_transform(H_a_b, X_b)
-    # Coherent shifts per 10x10 px cell make the outliers spatially clustered and structured.
-    cell = (v // 10 * 1000 + u // 10).astype(int)[outlier]
-    _, cell_index = np.unique(cell, return_inverse=True)
-    shifts = rng.normal(size=(cell_index.max() + 1 if cell.size else 0, 3))
-    shifts *= rng.uniform(0.05, 0.3, (len(shifts), 1)) / np.linalg.norm(shifts, axis=1, keepdims=True)
-    X_a[outlier] += shifts[cell_index]
-    X_a += rng.normal(scale=noise, size=X_a.shape)
-    return X_a[confident], X_b[confident], ~outlier[confident]
+    """One frame's confident points in submaps ``b`` and ``a`` (see ``frame_correspondences``)."""
+    return frame_correspondences(rng, H_a_b, height, width, noise, outlier_fraction)
 
 
 def points_in_front(rng: np.random.Generator, H: np.ndarray, count: int) -> np.ndarray:
@@ -194,7 +144,7 @@ def test_ransac_is_deterministic_given_the_seed() -> None:
 def test_planar_points_fall_back_to_sim3() -> None:
     rng = np.random.default_rng(8)
     T_a_b = np.eye(4)
-    T_a_b[:3, :3] = 1.3 * rotation(rng, 0.4)
+    T_a_b[:3, :3] = 1.3 * random_rotation(rng, 0.4)
     T_a_b[:3, 3] = [0.2, -0.1, 0.3]
     X_b = np.column_stack([rng.uniform(-1, 1, 3000), rng.uniform(-1, 1, 3000), np.full(3000, 2.0)])
     X_a = apply_transform(T_a_b, X_b)
@@ -263,7 +213,7 @@ def test_refit_improves_on_the_best_minimal_hypothesis() -> None:
 def test_estimate_sim3_with_outliers() -> None:
     rng = np.random.default_rng(13)
     T_a_b = np.eye(4)
-    T_a_b[:3, :3] = 0.8 * rotation(rng, 1.0)
+    T_a_b[:3, :3] = 0.8 * random_rotation(rng, 1.0)
     T_a_b[:3, 3] = [0.5, 0.2, -0.4]
     X_a, X_b, is_inlier = frame_points(rng, T_a_b, outlier_fraction=0.4)
     result = estimate_sim3(X_a, X_b, AlignmentConfig(), seed=0)
@@ -278,8 +228,8 @@ def test_sim3_from_shared_frame() -> None:
     rng = np.random.default_rng(14)
     # The shared frame's camera sits at different poses in the two submaps, and submap b's
     # reconstruction is 0.6 times the scale of submap a's.
-    T_cam_a = se3_inverse(np.block([[rotation(rng, 1.0), rng.normal(size=(3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]))
-    T_cam_b = se3_inverse(np.block([[rotation(rng, 1.0), rng.normal(size=(3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    T_cam_a = se3_inverse(np.block([[random_rotation(rng, 1.0), rng.normal(size=(3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    T_cam_b = se3_inverse(np.block([[random_rotation(rng, 1.0), rng.normal(size=(3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]))
     scale_b = 0.6
     X_cam = rng.uniform([-1, -1, 0.5], [1, 1, 3], size=(500, 3))
     X_a = apply_transform(se3_inverse(T_cam_a), X_cam)
