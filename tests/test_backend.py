@@ -192,12 +192,21 @@ def test_loop_closure_reduces_sl4_drift():
     params.setAbsoluteErrorTol(1e-15)
     params.setMaxIterations(200)
     batch = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
-    assert graph.error(backend.gtsam_values()) == pytest.approx(graph.error(batch), rel=1e-5)
+    assert graph.error(backend.gtsam_values()) == pytest.approx(graph.error(batch), rel=1e-4)
     for k in with_loop:
-        np.testing.assert_allclose(with_loop[k], batch.atSL4(backend.key(k)).matrix(), atol=1e-4)
+        np.testing.assert_allclose(with_loop[k], batch.atSL4(backend.key(k)).matrix(), atol=1e-3)
     # the single-node read agrees with the full estimate
     for k in (0, 10, 20):
         np.testing.assert_allclose(backend.H_world_submap(k), with_loop[k], atol=1e-8)
+    # the final polish removes what the relinearization threshold left
+    final = backend.final_estimates()
+    for k in with_loop:
+        np.testing.assert_allclose(final[k], batch.atSL4(backend.key(k)).matrix(), atol=1e-8)
+    # ... without touching iSAM2: the graph keeps growing
+    np.testing.assert_allclose(backend.estimates()[20], with_loop[20], atol=0)
+    backend.add_submap(21, odometry[-1])
+    backend.update()
+    assert backend.num_submaps == 22
 
 
 def test_sim3_loop_corrects_scale_drift():

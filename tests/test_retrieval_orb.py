@@ -112,6 +112,23 @@ def test_revisit_is_found(tum, distractors):
     assert near.distance < far.distance
 
 
+def test_verification_stops_once_enough_queries_match(tum, distractors, monkeypatch):
+    retrieval = OrbRetrieval(RetrievalConfig(orb_candidates=5))
+    retrieval.add([0, 36], [tum[0], tum[36]], submap_id=0)
+    retrieval.add(list(range(DISTRACTOR_BASE, DISTRACTOR_BASE + 4)), distractors[:4], submap_id=1)
+    verified: list[int] = []
+    verify = retrieval.verify
+    monkeypatch.setattr(retrieval, "verify", lambda query, position: verified.append(position) or verify(query, position))
+    queries, images = [2, 34], [tum[2], tum[34]]
+    one = retrieval.query(queries, images, submap_id=4, max_results=1)
+    assert len(one) == 1 and len(verified) == 1  # the most similar pair verified: nothing more spent
+    verified.clear()
+    both = retrieval.query(queries, images, submap_id=4, max_results=5)
+    assert len(verified) == 5  # every query may still match: the whole budget
+    assert {(c.query_frame, c.match_frame) for c in both} == {(2, 0), (34, 36)}
+    assert one[0] in both
+
+
 def test_warped_copy_is_found(tum, distractors):
     retrieval = OrbRetrieval(RetrievalConfig())
     retrieval.add([DISTRACTOR_BASE, DISTRACTOR_BASE + 1], distractors[:2], submap_id=0)
@@ -189,6 +206,24 @@ def test_results_are_sorted_truncated_and_deterministic(tum, distractors):
     retrieval = OrbRetrieval(RetrievalConfig())
     retrieval.add([0], [tum[0]], submap_id=0)
     assert retrieval.query([2], [tum[2]], submap_id=4, max_results=0) == []
+
+
+def test_add_reuses_the_query_features_only_for_the_same_image(tum):
+    retrieval = OrbRetrieval(RetrievalConfig())
+    retrieval.query([7], [tum[7]], submap_id=0, max_results=1)
+    extracted = retrieval.describe_seconds
+    retrieval.add([7], [tum[7].copy()], submap_id=0)  # equal pixels, another array: reused
+    assert retrieval.describe_seconds == extracted
+    stored = retrieval._descriptors[-1]
+
+    changed = tum[8].copy()
+    retrieval.query([9], [changed], submap_id=1, max_results=1)
+    changed[:] = tum[20]  # modified in place between query and add: extracted again
+    extracted = retrieval.describe_seconds
+    retrieval.add([9], [changed], submap_id=1)
+    assert retrieval.describe_seconds > extracted
+    assert np.array_equal(retrieval._descriptors[-1], retrieval.extract(tum[20]).descriptors)
+    assert not np.array_equal(retrieval._descriptors[-1], stored)
 
 
 def test_bad_input_is_a_user_error(tum):

@@ -55,7 +55,11 @@ class AlignmentConfig:
     """Relative alignment of consecutive submaps (paper 4.2)."""
 
     ransac_iterations: int = 300
-    """RANSAC hypotheses (paper: 300)."""
+    """Most RANSAC hypotheses (paper: 300, always drawn in full there)."""
+    ransac_confidence: float = 0.999
+    """Stop drawing hypotheses once an all-inlier sample has been drawn with this probability,
+    judged from the best hypothesis' inlier fraction (classic adaptive RANSAC; the reference code
+    always draws all of them)."""
     inlier_threshold: float = 0.01
     """Inlier distance in submap units (paper: 0.01)."""
     max_correspondences: int = 30000

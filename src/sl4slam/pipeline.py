@@ -92,6 +92,7 @@ class SLAMPipeline:
             raise UserError("--submap-size must be at least 1")
         if config.backend.kind not in ("sl4", "sim3"):
             raise UserError(f"unknown backend '{config.backend.kind}': use --backend sl4 or --backend sim3")
+        _check_alignment_config(config)
         self.config = config
         self.frontend = frontend
         self.retrieval = retrieval
@@ -331,7 +332,7 @@ class SLAMPipeline:
     # ------------------------------------------------------------------ results
     def result(self) -> SLAMResult:
         """Poses and intrinsics of every stored keyframe under the current graph estimate."""
-        H_world_submap = self.backend.estimates()
+        H_world_submap = self.backend.final_estimates()
         T_world_cam, K = keyframe_cameras(self.keyframes, H_world_submap)
         gt = None
         if self.keyframes and all(k.frame_index in self._gt for k in self.keyframes):
@@ -365,6 +366,16 @@ def keyframe_cameras(keyframes: Sequence[StoredKeyframe], H_world_submap: dict[i
     P = np.stack([k.K @ to_4x4(k.T_cam_submap)[:3] @ H_inv[k.submap_id] for k in keyframes])
     K, T_world_cam, _ = decompose_projection(P)
     return T_world_cam, K
+
+
+def _check_alignment_config(config: SLAMConfig) -> None:
+    alignment = config.alignment
+    if alignment.ransac_iterations < 1:
+        raise UserError(f"--ransac-iterations must be at least 1, got {alignment.ransac_iterations}")
+    if not 0.0 < alignment.ransac_confidence < 1.0:
+        raise UserError(f"--ransac-confidence must be between 0 and 1 (exclusive), got {alignment.ransac_confidence}")
+    if not (np.isfinite(alignment.inlier_threshold) and alignment.inlier_threshold > 0):
+        raise UserError(f"--ransac-inlier-threshold must be a positive number, got {alignment.inlier_threshold}")
 
 
 def _check_prediction(prediction: SubmapPrediction, num_frames: int) -> None:

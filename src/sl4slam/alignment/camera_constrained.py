@@ -63,13 +63,15 @@ def camera_constrained_sl4(
     use = np.ones(len(x_b), dtype=bool)
     weights = 1.0 / np.maximum(np.abs(mapped[:, 3]), 1e-9)
     H = H_p
+    d_norm2 = (d * d).sum(axis=1)  # (N,)
+    d_dot_g = (d * g).sum(axis=1)  # (N,)
     for iteration in range(ITERATIONS):
-        w = weights[use]
-        A = (d[use, :, None] * x_b[use, None, :]) * w[:, None, None]  # (n, 3, 4)
-        b = g[use] * w[:, None]
-        A = A.reshape(-1, 4)
-        AtA = A.T @ A
-        v = -np.linalg.solve(AtA + RIDGE * np.trace(AtA) / 4 * np.eye(4), A.T @ b.reshape(-1))
+        # Normal equations of min sum w^2 |g + (x_b . v) d|^2 over the points in use, formed
+        # directly as 4x4 sums: A^T A = sum w^2 |d|^2 x_b x_b^T, A^T b = sum w^2 (d . g) x_b.
+        w2 = np.where(use, weights * weights, 0.0)
+        AtA = (x_b * (w2 * d_norm2)[:, None]).T @ x_b
+        Atb = x_b.T @ (w2 * d_dot_g)
+        v = -np.linalg.solve(AtA + RIDGE * np.trace(AtA) / 4 * np.eye(4), Atb)
         H = H_p + np.outer(c_a, v)
         if np.linalg.det(H) < 0:  # keep the sign convention w > 0 before judging det
             H = -H
@@ -77,7 +79,8 @@ def camera_constrained_sl4(
         w_now = x_b @ H[3]
         weights = 1.0 / np.maximum(np.abs(w_now), 1e-9)
         # Shrink the fitting set towards the inliers gradually, so early outliers cannot lock in.
-        cut = max(threshold, float(np.quantile(np.sqrt(r2), 0.5))) * (4.0 if iteration < ITERATIONS // 2 else 1.0)
+        median_r2 = float(np.partition(r2, len(r2) // 2)[len(r2) // 2])
+        cut = max(threshold, np.sqrt(median_r2)) * (4.0 if iteration < ITERATIONS // 2 else 1.0)
         use = (r2 < cut**2) & (w_now > 0)
         if use.sum() < 4:
             return None

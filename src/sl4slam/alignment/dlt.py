@@ -121,20 +121,28 @@ def dlt_sl4(X_a: np.ndarray, X_b: np.ndarray, weights: np.ndarray | None = None)
         raise ValueError("dlt_sl4 got non-finite points")
     X_a_n, T_a = normalize_points(X_a)
     X_b_n, T_b = normalize_points(X_b)
+    H = np.linalg.solve(T_a, dlt_homogeneous(X_a_n, X_b_n, weights) @ T_b)  # undo the normalizations
+    H = fix_sign_by_w(H, X_b)
+    return normalize_sl4(H)
+
+
+def dlt_homogeneous(X_a: np.ndarray, X_b: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Unit-norm least-squares solution ``(4, 4)`` of the DLT system, with no normalization.
+
+    The caller supplies well-conditioned (Hartley-normalized) ``(N, 3)`` float64 points, N >= 5,
+    and fixes sign and scale. Small systems use the SVD of the design matrix itself (no squaring
+    of the condition number); large ones the eigenvector of the 16x16 normal matrix.
+    """
     if len(X_a) <= 64:
-        # Small systems: SVD of A itself (no squaring of the condition number).
-        A = dlt_design_matrix(X_a_n, X_b_n)
+        A = dlt_design_matrix(X_a, X_b)
         if weights is not None:
             A = A * np.sqrt(np.repeat(np.asarray(weights, dtype=np.float64), 3))[:, None]
         # Vt is 16x16 either way; full U is only needed when A has fewer than 16 rows.
         h = np.linalg.svd(A, full_matrices=len(A) < 16)[2][-1]
     else:
         w = None if weights is None else np.asarray(weights, dtype=np.float64)
-        h = np.linalg.eigh(_dlt_normal_matrix(X_a_n, X_b_n, w))[1][:, 0]
-    H_n = h.reshape(4, 4)
-    H = np.linalg.solve(T_a, H_n @ T_b)  # undo the normalizations: T_a^-1 H_n T_b
-    H = fix_sign_by_w(H, X_b)
-    return normalize_sl4(H)
+        h = np.linalg.eigh(_dlt_normal_matrix(X_a, X_b, w))[1][:, 0]
+    return h.reshape(4, 4)
 
 
 def minimal_sl4_batch(X_a: np.ndarray, X_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

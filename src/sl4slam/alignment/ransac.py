@@ -4,8 +4,11 @@
 5-point DLT samples; ``estimate_sim3`` fits a 7-DOF similarity with RANSAC over 3-point Umeyama
 samples. Both share the machinery below:
 
-1. Hypotheses are built in one batch (``num_samples x sample_size`` indices drawn from the seeded
-   generator, one batched solver call); degenerate samples are discarded, never replaced.
+1. Hypotheses are built in batches (``batch x sample_size`` indices drawn from the seeded
+   generator, one batched solver call per batch); degenerate samples are discarded, never
+   replaced. Drawing stops adaptively once the best hypothesis' inlier fraction says an
+   all-inlier sample has been drawn with ``config.ransac_confidence``, and at
+   ``config.ransac_iterations`` (the paper's 300) at most.
 2. Hypotheses are scored in batch with the MSAC cost (truncated squared transfer error) of
    ``|X_a - H X_b|`` after homogeneous division, in ``X_a``'s units; points that ``H`` maps to
    ``w <= 0`` (behind the plane sent to infinity) are outliers. Scoring uses a seeded random
@@ -29,7 +32,7 @@ import numpy as np
 from ..config import AlignmentConfig
 from ..geometry import normalize_sl4, umeyama_sim3
 from ..types import Alignment
-from .dlt import dlt_sl4, minimal_sl4_batch, normalize_points
+from .dlt import dlt_homogeneous, fix_sign_by_w, minimal_sl4_batch, normalize_points
 from .sim3 import umeyama_sim3_batch
 
 PREEMPTIVE_POINTS = 1024
@@ -37,6 +40,10 @@ PREEMPTIVE_POINTS = 1024
 PREEMPTIVE_KEEP = 0.1
 """Fraction of hypotheses (at least ``PREEMPTIVE_MIN_KEEP``) scored on the full subset."""
 PREEMPTIVE_MIN_KEEP = 8
+HYPOTHESIS_BATCH = 50
+"""Hypotheses drawn, solved and scored together before the adaptive stopping test: 50 five-point
+samples contain an all-inlier one with probability 0.999 from about 2/3 inliers, so a
+well-aligned pair needs one batch instead of all 300."""
 REFIT_ROUNDS = 10
 """Most refit / re-score rounds after RANSAC; they stop once the inlier set stops changing or
 the cost stops decreasing (typically after 2-4 rounds)."""
@@ -109,15 +116,30 @@ def transfer_errors(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray) -> tuple[np
     return r2, in_front
 
 
-def msac_costs(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray, threshold: float) -> np.ndarray:
-    """MSAC cost ``sum min(r^2, t^2)`` per hypothesis ``(M,)`` (points with ``w <= 0`` cost ``t^2``)."""
+def msac_costs(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """MSAC cost ``sum min(r^2, t^2)`` per hypothesis ``(M,)`` (points with ``w <= 0`` cost ``t^2``)
+    and the inlier count of each hypothesis ``(M,)``."""
     thr2 = threshold**2
     block = max(1, SCORE_BLOCK // max(len(X_a), 1))
     costs = np.empty(len(H))
+    counts = np.empty(len(H), dtype=np.int64)
     for start in range(0, len(H), block):  # blocks of hypotheses bound the temporary memory
         r2, in_front = transfer_errors(H[start : start + block], X_a, X_b)
-        costs[start : start + block] = np.where(in_front & (r2 < thr2), r2, thr2).sum(axis=1)
-    return costs
+        inliers = in_front & (r2 < thr2)
+        costs[start : start + block] = np.where(inliers, r2, thr2).sum(axis=1)
+        counts[start : start + block] = inliers.sum(axis=1)
+    return costs, counts
+
+
+def hypotheses_needed(inlier_fraction: float, sample_size: int, confidence: float) -> float:
+    """Samples needed to draw one all-inlier sample with probability ``confidence`` (the classic
+    RANSAC bound ``log(1 - p) / log(1 - w^k)``); ``inf`` when ``w^k`` is zero."""
+    all_inliers = inlier_fraction**sample_size
+    if all_inliers <= 0:
+        return float("inf")
+    if all_inliers >= 1:
+        return 0.0
+    return float(np.log(1.0 - confidence) / np.log1p(-all_inliers))
 
 
 def score_one(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray, threshold: float) -> tuple[float, np.ndarray, np.ndarray]:
@@ -148,7 +170,13 @@ def ransac_best(
     config: AlignmentConfig,
     rng: np.random.Generator,
 ) -> tuple[np.ndarray | None, dict]:
-    """Batched hypothesize-and-score; returns the lowest-cost hypothesis (or None) and statistics.
+    """Batched, adaptive hypothesize-and-score; returns the lowest-cost hypothesis (or None) and statistics.
+
+    Hypotheses come in batches of ``HYPOTHESIS_BATCH`` (one solver call and one scoring pass each).
+    After every batch the best hypothesis' inlier fraction ``w`` on the scoring subset updates the
+    number of samples needed to have drawn an all-inlier sample with probability
+    ``config.ransac_confidence``; drawing stops there, and never goes beyond
+    ``config.ransac_iterations``. Well-aligned submaps (most inliers) thus need one batch.
 
     Args:
         X_a, X_b: ``(N, 3)`` finite correspondences (in whatever frame the solver expects).
@@ -157,24 +185,35 @@ def ransac_best(
         threshold: inlier distance in ``X_a``'s units.
     """
     N = len(X_a)
-    samples, distinct = draw_samples(N, sample_size, config.ransac_iterations, rng)
-    H, valid = solver(X_a[samples], X_b[samples])
-    valid &= distinct
-    stats = {"hypotheses": int(len(H)), "degenerate_samples": int((~valid).sum())}
-    if not valid.any():
-        return None, stats
-    H = H[valid]
     scored = rng.permutation(N)[: config.max_points]  # random order: any prefix is a random subset
     # Ranking hypotheses needs far less precision than float64 (errors ~1e-7 vs a 1e-2 threshold).
     sub_a, sub_b = X_a[scored].astype(np.float32), X_b[scored].astype(np.float32)
-    stats["scored_points"] = int(len(scored))
-    keep = max(PREEMPTIVE_MIN_KEEP, int(np.ceil(PREEMPTIVE_KEEP * len(H))))
-    if len(H) > keep and len(scored) > 2 * PREEMPTIVE_POINTS:
-        costs = msac_costs(H, sub_a[:PREEMPTIVE_POINTS], sub_b[:PREEMPTIVE_POINTS], threshold)
-        H = H[np.argpartition(costs, keep - 1)[:keep]]
-    stats["fully_scored_hypotheses"] = int(len(H))
-    costs = msac_costs(H, sub_a, sub_b, threshold)
-    return H[int(np.argmin(costs))], stats
+    preemptive = len(scored) > 2 * PREEMPTIVE_POINTS
+    limit = int(config.ransac_iterations)
+    needed = float(limit)
+    stats = {"hypotheses": 0, "degenerate_samples": 0, "fully_scored_hypotheses": 0, "scored_points": int(len(scored))}
+    best_H, best_cost = None, np.inf
+    while stats["hypotheses"] < min(limit, needed):
+        count = min(HYPOTHESIS_BATCH, limit - stats["hypotheses"])
+        samples, distinct = draw_samples(N, sample_size, count, rng)
+        H, valid = solver(X_a[samples], X_b[samples])
+        valid &= distinct
+        stats["hypotheses"] += count
+        stats["degenerate_samples"] += int((~valid).sum())
+        if not valid.any():
+            continue
+        H = H[valid]
+        keep = max(PREEMPTIVE_MIN_KEEP, int(np.ceil(PREEMPTIVE_KEEP * len(H))))
+        if preemptive and len(H) > keep:
+            costs, _ = msac_costs(H, sub_a[:PREEMPTIVE_POINTS], sub_b[:PREEMPTIVE_POINTS], threshold)
+            H = H[np.argpartition(costs, keep - 1)[:keep]]
+        stats["fully_scored_hypotheses"] += int(len(H))
+        costs, counts = msac_costs(H, sub_a, sub_b, threshold)
+        best = int(np.argmin(costs))
+        if costs[best] < best_cost:
+            best_H, best_cost = H[best], float(costs[best])
+            needed = hypotheses_needed(counts[best] / len(scored), sample_size, config.ransac_confidence)
+    return best_H, stats
 
 
 def refine(
@@ -306,11 +345,12 @@ def estimate_sim3(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, see
 
 
 def _fit_sl4(X_a: np.ndarray, X_b: np.ndarray, H: np.ndarray) -> np.ndarray:
-    """Weighted DLT refit: weights ``1 / w^2`` (``w`` from the current ``H``) turn the algebraic
-    error into the transfer error in ``X_a``; repeated refits in :func:`refine` iterate the weights.
-    """
+    """Weighted DLT refit on already normalized points: weights ``1 / w^2`` (``w`` from the current
+    ``H``) turn the algebraic error into the transfer error in ``X_a``; repeated refits in
+    :func:`refine` iterate the weights. Raises ``ValueError`` when the fit has ``det <= 0``."""
     w = X_b @ H[3, :3] + H[3, 3]
-    return dlt_sl4(X_a, X_b, weights=1.0 / np.maximum(w, 1e-12) ** 2)
+    H_new = dlt_homogeneous(X_a, X_b, weights=1.0 / np.maximum(w, 1e-12) ** 2)
+    return normalize_sl4(fix_sign_by_w(H_new, X_b))
 
 
 def estimate_sl4(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, seed: int = 0) -> Alignment:
@@ -361,18 +401,21 @@ def estimate_sl4(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, seed
     X_a_n, T_a = normalize_points(X_a)
     X_b_n, T_b = normalize_points(X_b)
     threshold = float(config.inlier_threshold)
-    H_n, ransac_stats = ransac_best(X_a_n, X_b_n, minimal_sl4_batch, 5, threshold * T_a[0, 0], config, rng)
+    # Sampling, scoring and refits all work on the normalized points: T_a is a similarity with
+    # scale T_a[0, 0], so distances there are that scale times distances in X_a's units.
+    threshold_n = threshold * T_a[0, 0]
+    H_n, ransac_stats = ransac_best(X_a_n, X_b_n, minimal_sl4_batch, 5, threshold_n, config, rng)
     stats.update(ransac_stats)
     if H_n is None:
         return fallback("every 5-point sample degenerate")
-    H = normalize_sl4(np.linalg.solve(T_a, H_n @ T_b))  # back to submap units: T_a^-1 H_n T_b
-
-    fit = _fit_sl4 if config.refit else None
-    if fit is not None:
-        H, _, inliers, r2, refits = refine(H, X_a, X_b, threshold, fit, max(config.min_inliers, 5), config.max_refit_points)
+    if config.refit:
+        H_n, _, inliers, r2, refits = refine(
+            H_n, X_a_n, X_b_n, threshold_n, _fit_sl4, max(config.min_inliers, 5), config.max_refit_points)
     else:
-        _, inliers, r2 = score_one(H, X_a, X_b, threshold)
+        _, inliers, r2 = score_one(H_n, X_a_n, X_b_n, threshold_n)
         refits = 0
+    H = normalize_sl4(np.linalg.solve(T_a, H_n @ T_b))  # back to submap units: T_a^-1 H_n T_b
+    r2 = r2 / T_a[0, 0] ** 2
     count = int(inliers.sum())
     stats.update(refits=refits, inliers=count)
     if count < config.min_inliers:
