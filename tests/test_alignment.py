@@ -13,6 +13,7 @@ from sl4slam.alignment import (
     normalize_points,
     sim3_from_shared_frame,
 )
+from sl4slam.alignment.ransac import HYPOTHESIS_BATCH, hypotheses_needed
 from sl4slam.config import AlignmentConfig
 from sl4slam.synthetic.correspondences import frame_correspondences, near_identity_sl4, random_rotation
 from sl4slam.geometry import apply_transform, normalize_sl4, se3_inverse
@@ -125,6 +126,33 @@ def test_ransac_recovers_h_with_40_percent_clustered_outliers() -> None:
     # Noise sigma 0.002 per axis: inlier RMS ~ 0.002 * sqrt(3).
     assert 0.002 < result.rms < 0.005
     assert result.extras["degenerate_samples"] < result.extras["hypotheses"]
+
+
+def test_hypotheses_needed_is_the_classic_bound() -> None:
+    # log(1 - p) / log(1 - w^k): 5-point samples at 50 % inliers need ~218 for p = 0.999
+    assert hypotheses_needed(0.5, 5, 0.999) == pytest.approx(np.log(0.001) / np.log(1 - 0.5**5))
+    assert 217 < hypotheses_needed(0.5, 5, 0.999) < 218
+    assert hypotheses_needed(1.0, 5, 0.999) == 0.0
+    assert hypotheses_needed(0.0, 5, 0.999) == float("inf")
+
+
+def test_ransac_draws_hypotheses_adaptively() -> None:
+    rng = np.random.default_rng(11)
+    H = near_identity_sl4(rng)
+    drawn = {}
+    for outliers in (0.0, 0.6):
+        X_a, X_b, is_inlier = frame_points(rng, H, outlier_fraction=outliers)
+        result = estimate_sl4(X_a, X_b, AlignmentConfig(), seed=0)
+        drawn[outliers] = result.extras["hypotheses"]
+        assert np.abs(result.H - H).max() < 1e-2 and result.fallback is None
+        assert (result.inliers == is_inlier).mean() > 0.99
+        # the same batches with a lower confidence stop no later
+        quick = estimate_sl4(X_a, X_b, AlignmentConfig(ransac_confidence=0.5), seed=0)
+        assert quick.extras["hypotheses"] <= drawn[outliers]
+    # clean points: the first batch holds an all-inlier sample; ~60 % clustered outliers
+    # (w^5 ~ 1 %) need several batches, and never more than the paper's 300
+    assert drawn[0.0] == HYPOTHESIS_BATCH
+    assert HYPOTHESIS_BATCH < drawn[0.6] <= 300
 
 
 def test_ransac_is_deterministic_given_the_seed() -> None:

@@ -44,9 +44,13 @@ HYPOTHESIS_BATCH = 50
 """Hypotheses drawn, solved and scored together before the adaptive stopping test: 50 five-point
 samples contain an all-inlier one with probability 0.999 from about 2/3 inliers, so a
 well-aligned pair needs one batch instead of all 300."""
-REFIT_ROUNDS = 10
-"""Most refit / re-score rounds after RANSAC; they stop once the inlier set stops changing or
-the cost stops decreasing (typically after 2-4 rounds)."""
+REFIT_ROUNDS = 5
+"""Most refit / re-score rounds after RANSAC; they stop earlier once the inlier set stops
+changing or the cost stops decreasing by more than ``REFIT_MIN_GAIN``."""
+REFIT_MIN_GAIN = 1e-3
+"""Relative MSAC cost decrease below which another refit is not worth it: the remaining rounds
+only trade points on the threshold's edge (seen on the synthetic world: ~5 rounds of <0.1 %
+each, with no visible change of the estimate)."""
 SCORE_BLOCK = 1 << 21
 """Hypothesis x point entries scored at once (bounds the temporary memory to ~100 MB)."""
 SMALL_SET = 4096
@@ -226,7 +230,7 @@ def refine(
     max_fit_points: int = 0,
 ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, int]:
     """Least-squares refit on the inliers, re-score on all points, repeat while the inlier set
-    changes and the cost drops.
+    changes and the cost drops by at least ``REFIT_MIN_GAIN`` (relative).
 
     With ``max_fit_points > 0`` the fit uses an evenly strided subset of at most that many
     inliers (dense points are spatially ordered, so the subset covers the frame evenly): the
@@ -255,10 +259,11 @@ def refine(
         cost_new, inliers_new, r2_new = score_one(H_new, X_a, X_b, threshold)
         if not cost_new < cost:
             break
-        settled = np.array_equal(inliers_new, inliers)
+        # same inlier set, or a negligible gain: another refit would only nudge the 1/w^2 weights
+        settled = np.array_equal(inliers_new, inliers) or cost - cost_new < REFIT_MIN_GAIN * cost
         H, cost, inliers, r2 = H_new, cost_new, inliers_new, r2_new
         accepted += 1
-        if settled:  # same inlier set: another refit would only nudge the 1/w^2 weights
+        if settled:
             break
     return H, cost, inliers, r2, accepted
 

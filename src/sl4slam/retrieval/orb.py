@@ -115,7 +115,7 @@ def match_descriptors(
 # query batch is ranked against the whole database by one matrix product; only the best
 # COARSE_CANDIDATES rows per query are then scored exactly (tf-idf through the sparse rows).
 GLOBAL_DIM = 1024
-COARSE_CANDIDATES = 16
+COARSE_CANDIDATES = 8
 
 class OrbRetrieval:
     """Place recognition with ORB features (implements ``sl4slam.types.Retrieval``, name "orb").
