@@ -166,7 +166,7 @@ def main() -> None:
     lines += [
         "",
         "Update that absorbs one loop closure (node 0 to the newest node; the loop corrects the odometry's "
-        "drift, so iSAM2 iterates, relinearizing, while some step exceeds 1e-2; the cost grows with the "
+        "drift, so iSAM2 iterates, relinearizing, while some step exceeds 5e-2; the cost grows with the "
         "loop's length):",
         "",
         "| backend | submaps | loop update (ms) | iSAM2 iterations |",
@@ -180,7 +180,7 @@ def main() -> None:
     lines += [
         "",
         f"End of a run ({NUM_SUBMAPS} submaps, a loop every {LOOP_EVERY} and one from the last node to the "
-        "first): iSAM2 relinearizes only variables whose step exceeds 1e-3, so `final_estimates` polishes "
+        "first): iSAM2 relinearizes only variables whose step exceeds 1e-2, so `final_estimates` polishes "
         "the whole graph once by Gauss-Newton:",
         "",
         "| backend | final polish (ms) | largest entry change to iSAM2's estimate | largest entry difference to batch LM |",

@@ -139,7 +139,7 @@ def main() -> None:
         plain_row,
         "",
         f"Submaps that closed a loop: {int((~odometry_only).sum())}; their backend update (iSAM2 steps "
-        f"again only while some step exceeds 1e-2) took median "
+        f"again only while some step exceeds 5e-2) took median "
         f"{np.median(loop_backend) if loop_backend else 0:.1f} ms, max {max(loop_backend) if loop_backend else 0:.1f} ms. "
         f"The loops found here reach back to the first lap, so their span grows with the map.",
         "",

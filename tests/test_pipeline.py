@@ -112,6 +112,7 @@ def test_outputs_and_replay(world: Path, tmp_path: Path) -> None:
     saved = json.loads((out / "summary.json").read_text())
     assert saved["ate"]["rmse"] == pytest.approx(compute_ate(expected).rmse, rel=1e-6)
     assert saved["counts"]["loops"] >= 1 and saved["fallbacks"]
+    assert saved["seconds"]["final_optimization"] > 0.0
     assert (out / "trajectory.png").stat().st_size > 1000
     assert not list(out.rglob("*.tmp*"))
     # replay the recorded frontend with another backend: no simulator needed

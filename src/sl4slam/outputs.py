@@ -178,7 +178,8 @@ def summarize(result: SLAMResult, config_dict: dict, ate_result: ATEResult | Non
                    "rms": round(e.rms, 6)} for e in loops],
         "seconds": {"total": round(result.stats.get("seconds_total", 0.0), 3),
                     "by_stage": {k: round(v, 3) for k, v in result.stats.get("seconds_by_stage", {}).items()},
-                    "per_submap_median": per_submap},
+                    "per_submap_median": per_submap,
+                    "final_optimization": result.stats.get("seconds_final_optimization", 0.0)},
         "memory": {**peak_memory(), "stored_keyframe_bytes": result.stats.get("stored_bytes", 0)},
         "config": config_dict,
     }

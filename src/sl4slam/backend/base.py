@@ -20,14 +20,17 @@ in GTSAM is the first-order ``Vee(E^-1 - I)``). The tests check this numerically
 
 The graph is optimized with iSAM2: a pure odometry step only eliminates the newest clique, so its
 cost does not grow with the map. A loop factor makes iSAM2 re-eliminate the path from the loop's
-older node to the root, whose length is the loop's span. Two thresholds bound that work: iSAM2
-relinearizes only variables whose step exceeds 1e-3 (tangent coordinates, 2 % of the default
-sigma), and it iterates after a loop only while some step exceeds 1e-2, i.e. when the loop
-corrects real drift; a loop that agrees with the map takes one step, and the small steps left
-are taken by later updates. On a 300-submap run that keeps closing loops to its first lap this
-is 4 ms per loop update, against 23 ms when iterating to 1e-5. The estimate stays within about
-2e-4 of the optimum; :meth:`final_estimates` removes that once, at the end of a run, with a batch
-Gauss-Newton polish of the whole graph.
+older node to the root, and relinearize every variable whose step exceeds the threshold; both
+follow the loop's span. Two thresholds keep that work small: variables are relinearized once
+their step exceeds 1e-2 (tangent coordinates, a fifth of the default sigma; GTSAM's default is
+0.1), and after a loop iSAM2 iterates only while some step exceeds 5e-2 (one sigma),
+i.e. when the loop corrects real drift. On a 300-submap run that keeps closing loops to its first
+lap, the median of the last 50 updates is 3 ms, against 25 ms when iterating to 1e-5 (same
+machine, cold caches). The estimate then sits within about 1e-4 (relative) of the optimal graph
+error; :meth:`final_estimates` removes that once, at the end of a run, with a batch Gauss-Newton
+polish of the whole graph. (GTSAM's SL(4) chart is first-order, so near the optimum the graph
+error is flat to about 1e-5 relative and solutions differ by ~1e-4 in their entries: beyond that,
+"converged" has no meaning.)
 """
 
 from __future__ import annotations
@@ -122,9 +125,9 @@ class FactorGraphBackend(ABC):
         self,
         config: BackendConfig,
         *,
-        relinearize_threshold: float = 1e-3,
+        relinearize_threshold: float = 1e-2,
         wildfire_threshold: float = 1e-9,
-        loop_step_threshold: float = 1e-2,
+        loop_step_threshold: float = 5e-2,
         max_loop_iterations: int = 30,
     ) -> None:
         validate_backend_config(config)
