@@ -101,6 +101,7 @@ def main() -> None:
     per_submap = pipeline.submap_seconds
     totals = np.array([sum(s.get(k, 0.0) for k in STAGES) for s in per_submap])
     early, late = slice(10, 20), slice(len(per_submap) - 10, len(per_submap))
+    middle = slice(len(per_submap) // 2 - 5, len(per_submap) // 2 + 5)
 
     def med(values, window) -> float:
         return float(np.median(np.asarray(values)[window])) * 1000
@@ -108,12 +109,15 @@ def main() -> None:
     rows = []
     for stage in STAGES + ("retrieval_describe", "frontend"):
         values = [s.get(stage, 0.0) for s in per_submap]
-        rows.append(f"| {stage} | {med(values, early):.1f} | {med(values, late):.1f} |")
+        rows.append(f"| {stage} | {med(values, early):.1f} | {med(values, middle):.1f} | {med(values, late):.1f} |")
     # cost of the submaps that closed no loop: what every submap pays, loops or not
     odometry_only = np.array([n == 0 for n in pipeline.submap_loops])
     plain = np.flatnonzero(odometry_only)
+    half = len(per_submap) // 2
     plain_early, plain_late = plain[(plain >= 10) & (plain < 40)][:10], plain[-10:]
+    plain_middle = plain[plain >= half - 5][:10]
     plain_row = (f"| total, submaps that closed no loop | {np.median(totals[plain_early]) * 1000:.1f} | "
+                 f"{np.median(totals[plain_middle]) * 1000:.1f} | "
                  f"{np.median(totals[plain_late]) * 1000:.1f} |") if len(plain_early) and len(plain_late) else ""
     loop_backend = [s.get("backend", 0.0) * 1000 for s, n in zip(per_submap, pipeline.submap_loops) if n]
     stored = sum(k.nbytes for k in pipeline.keyframes) / len(pipeline.keyframes)
@@ -132,11 +136,15 @@ def main() -> None:
         "",
         "Median milliseconds per submap:",
         "",
-        "| stage | submaps 10-20 | last 10 submaps |",
-        "|---|---|---|",
+        f"| stage | submaps 10-20 | submaps {middle.start}-{middle.stop} | last 10 submaps |",
+        "|---|---|---|---|",
         *rows,
-        f"| **total without frontend and descriptors** | **{med(totals, early):.1f}** | **{med(totals, late):.1f}** |",
+        f"| **total without frontend and descriptors** | **{med(totals, early):.1f}** | **{med(totals, middle):.1f}** "
+        f"| **{med(totals, late):.1f}** |",
         plain_row,
+        "",
+        f"Last 10 / submaps 10-20, total: {med(totals, late) / med(totals, early):.2f}. Over the run the "
+        f"median total is {np.median(totals) * 1000:.1f} ms and the 90th percentile {np.percentile(totals, 90) * 1000:.1f} ms.",
         "",
         f"Submaps that closed a loop: {int((~odometry_only).sum())}; their backend update (iSAM2 steps "
         f"again only while some step exceeds 5e-2) took median "
