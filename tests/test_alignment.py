@@ -13,7 +13,7 @@ from sl4slam.alignment import (
     normalize_points,
     sim3_from_shared_frame,
 )
-from sl4slam.alignment.ransac import HYPOTHESIS_BATCH, hypotheses_needed
+from sl4slam.alignment.ransac import HYPOTHESIS_BATCH, hypotheses_needed, ransac_best
 from sl4slam.config import AlignmentConfig
 from sl4slam.synthetic.correspondences import frame_correspondences, near_identity_sl4, random_rotation
 from sl4slam.geometry import apply_transform, normalize_sl4, se3_inverse
@@ -153,6 +153,28 @@ def test_ransac_draws_hypotheses_adaptively() -> None:
     # (w^5 ~ 1 %) need several batches, and never more than the paper's 300
     assert drawn[0.0] == HYPOTHESIS_BATCH
     assert HYPOTHESIS_BATCH < drawn[0.6] <= 300
+
+
+def test_early_stop_needs_well_spread_inliers() -> None:
+    """A hypothesis that explains only a dominant plane may not end the sampling early."""
+    rng = np.random.default_rng(12)
+    H = near_identity_sl4(rng)
+    X_a, X_b, _ = frame_points(rng, H)
+    X_a_n, T_a = normalize_points(X_a)
+    X_b_n, _ = normalize_points(X_b)
+    config = AlignmentConfig()
+    threshold = config.inlier_threshold * T_a[0, 0]  # in the normalized units
+    seen: list[int] = []
+
+    def refuse(inliers_b: np.ndarray) -> bool:
+        seen.append(len(inliers_b))
+        return False
+
+    for hook, drawn in ((None, HYPOTHESIS_BATCH), (lambda inliers_b: True, HYPOTHESIS_BATCH), (refuse, 300)):
+        _, stats = ransac_best(X_a_n, X_b_n, minimal_sl4_batch, 5, threshold, config, np.random.default_rng(0), hook)
+        assert stats["hypotheses"] == drawn
+        assert stats["stopped_early"] == (drawn < 300)
+    assert seen and seen[0] > 0.9 * min(len(X_a), config.max_points)  # the best hypothesis' inliers are checked
 
 
 def test_ransac_is_deterministic_given_the_seed() -> None:

@@ -77,6 +77,16 @@ def test_single_frame_is_a_one_line_error(tmp_path: Path) -> None:
     assert not (tmp_path / "out" / "trajectory.txt").exists()
 
 
+@pytest.mark.parametrize("flag, value", [("--ransac-confidence", "1.5"), ("--ransac-iterations", "0"),
+                                         ("--backend-sigma", "0"), ("--submap-size", "0")])
+def test_bad_setting_is_a_one_line_error_before_any_work(tmp_path: Path, capsys, flag: str, value: str) -> None:
+    missing = tmp_path / "missing"  # the setting is checked before the source is even opened
+    assert main(["run", str(missing), "--out", str(tmp_path / "o"), "--frontend", "simulated", flag, value]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and flag.lstrip("-").split("-")[-1] in err[0]
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("verb", ["run", "demo", "synth", "convert", "ate"])
 def test_every_verb_has_help(verb: str) -> None:
     proc = _run_cli(verb, "--help")

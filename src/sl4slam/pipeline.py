@@ -16,7 +16,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .alignment import camera_constrained_sl4, estimate_sl4, sim3_from_shared_frame
-from .backend import make_backend
+from .backend import make_backend, validate_backend_config
 from .config import SLAMConfig
 from .errors import UserError
 from .geometry import decompose_projection, normalize_sl4, to_4x4
@@ -88,11 +88,7 @@ class SLAMPipeline:
         retrieval: Retrieval | None = None,
         on_submap: Callable[["SLAMPipeline", int], None] | None = None,
     ) -> None:
-        if config.submap.size < 1:
-            raise UserError("--submap-size must be at least 1")
-        if config.backend.kind not in ("sl4", "sim3"):
-            raise UserError(f"unknown backend '{config.backend.kind}': use --backend sl4 or --backend sim3")
-        _check_alignment_config(config)
+        check_config(config)
         self.config = config
         self.frontend = frontend
         self.retrieval = retrieval
@@ -372,7 +368,13 @@ def keyframe_cameras(keyframes: Sequence[StoredKeyframe], H_world_submap: dict[i
     return T_world_cam, K
 
 
-def _check_alignment_config(config: SLAMConfig) -> None:
+def check_config(config: SLAMConfig) -> None:
+    """Raise ``UserError`` for settings the pipeline cannot run with (cheap: call it before loading models)."""
+    if config.submap.size < 1:
+        raise UserError("--submap-size must be at least 1")
+    if config.backend.kind not in ("sl4", "sim3"):
+        raise UserError(f"unknown backend '{config.backend.kind}': use --backend sl4 or --backend sim3")
+    validate_backend_config(config.backend)
     alignment = config.alignment
     if alignment.ransac_iterations < 1:
         raise UserError(f"--ransac-iterations must be at least 1, got {alignment.ransac_iterations}")

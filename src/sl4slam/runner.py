@@ -19,9 +19,10 @@ def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig, r
     from .frontend import make_frontend
     from .io import open_source
     from .outputs import write_outputs
-    from .pipeline import SLAMPipeline
+    from .pipeline import SLAMPipeline, check_config
     from .retrieval import make_retrieval
 
+    check_config(config)
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"--out {out_dir} exists and is not a folder; choose another output folder")

@@ -44,6 +44,9 @@ HYPOTHESIS_BATCH = 50
 """Hypotheses drawn, solved and scored together before the adaptive stopping test: 50 five-point
 samples contain an all-inlier one with probability 0.999 from about 2/3 inliers, so a
 well-aligned pair needs one batch instead of all 300."""
+EARLY_STOP_SPREAD = 0.5
+"""The SL(4) sampling may stop early only if the best hypothesis' inliers keep at least this
+fraction of the points' planarity (see ``estimate_sl4``)."""
 REFIT_ROUNDS = 5
 """Most refit / re-score rounds after RANSAC; they stop earlier once the inlier set stops
 changing or the cost stops decreasing by more than ``REFIT_MIN_GAIN``."""
@@ -173,6 +176,7 @@ def ransac_best(
     threshold: float,
     config: AlignmentConfig,
     rng: np.random.Generator,
+    may_stop_early: Callable[[np.ndarray], bool] | None = None,
 ) -> tuple[np.ndarray | None, dict]:
     """Batched, adaptive hypothesize-and-score; returns the lowest-cost hypothesis (or None) and statistics.
 
@@ -187,6 +191,11 @@ def ransac_best(
         solver: ``(M, k, 3), (M, k, 3) -> (H (M, 4, 4), valid (M,))``, fitting ``X_a ~ H X_b``.
         sample_size: ``k``.
         threshold: inlier distance in ``X_a``'s units.
+        may_stop_early: given the ``X_b`` inliers (on the scoring subset) of the best hypothesis,
+            whether the adaptive stop may trust it; if not, every hypothesis up to
+            ``config.ransac_iterations`` is drawn. The confidence bound assumes that an all-inlier
+            sample gives the right model, which fails when the inliers are a near-degenerate
+            configuration (a dominant plane for the 15-DOF map).
     """
     N = len(X_a)
     scored = rng.permutation(N)[: config.max_points]  # random order: any prefix is a random subset
@@ -217,6 +226,11 @@ def ransac_best(
         if costs[best] < best_cost:
             best_H, best_cost = H[best], float(costs[best])
             needed = hypotheses_needed(counts[best] / len(scored), sample_size, config.ransac_confidence)
+            if may_stop_early is not None and needed <= stats["hypotheses"]:
+                _, inliers, _ = score_one(best_H, sub_a, sub_b, threshold)
+                if not may_stop_early(sub_b[inliers]):
+                    needed = float(limit)
+    stats["stopped_early"] = stats["hypotheses"] < limit
     return best_H, stats
 
 
@@ -409,7 +423,15 @@ def estimate_sl4(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, seed
     # Sampling, scoring and refits all work on the normalized points: T_a is a similarity with
     # scale T_a[0, 0], so distances there are that scale times distances in X_a's units.
     threshold_n = threshold * T_a[0, 0]
-    H_n, ransac_stats = ransac_best(X_a_n, X_b_n, minimal_sl4_batch, 5, threshold_n, config, rng)
+    # Only a hypothesis whose inliers are about as three-dimensional as the points may end the
+    # sampling early: one that explains just a dominant plane (and calls the rest outliers) is the
+    # near-degenerate case where more samples find the full 15-DOF map.
+    spread_needed = max(config.planarity_threshold, EARLY_STOP_SPREAD * flatness)
+
+    def well_spread(inliers_b: np.ndarray) -> bool:
+        return len(inliers_b) >= config.min_inliers and planarity(inliers_b, config.max_points) >= spread_needed
+
+    H_n, ransac_stats = ransac_best(X_a_n, X_b_n, minimal_sl4_batch, 5, threshold_n, config, rng, well_spread)
     stats.update(ransac_stats)
     if H_n is None:
         return fallback("every 5-point sample degenerate")
