@@ -7,8 +7,9 @@ samples. Both share the machinery below:
 1. Hypotheses are built in batches (``batch x sample_size`` indices drawn from the seeded
    generator, one batched solver call per batch); degenerate samples are discarded, never
    replaced. Drawing stops adaptively once the best hypothesis' inlier fraction says an
-   all-inlier sample has been drawn with ``config.ransac_confidence``, and at
-   ``config.ransac_iterations`` (the paper's 300) at most.
+   all-inlier sample has been drawn with ``config.ransac_confidence`` (for SL(4), only if that
+   hypothesis' inliers are not confined to a plane), and at ``config.ransac_iterations`` (the
+   paper's 300) at most.
 2. Hypotheses are scored in batch with the MSAC cost (truncated squared transfer error) of
    ``|X_a - H X_b|`` after homogeneous division, in ``X_a``'s units; points that ``H`` maps to
    ``w <= 0`` (behind the plane sent to infinity) are outliers. Scoring uses a seeded random
