@@ -327,10 +327,10 @@ class SLAMPipeline:
 
     # ------------------------------------------------------------------ results
     def result(self) -> SLAMResult:
-        """Poses and intrinsics of every stored keyframe under the graph optimized to convergence
+        """Poses and intrinsics of every stored keyframe under the polished graph estimate
         (``final_estimates``: a batch polish of the whole graph, O(submaps), so call it at the end)."""
         start = time.perf_counter()
-        H_world_submap = self.backend.final_estimates()  # the converged optimum, once per result
+        H_world_submap = self.backend.final_estimates()  # batch polish of the whole graph, once per result
         final_seconds = time.perf_counter() - start
         T_world_cam, K = keyframe_cameras(self.keyframes, H_world_submap)
         gt = None
