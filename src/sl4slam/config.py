@@ -279,9 +279,10 @@ class BackendConfig(Section):
     max_sigma: float = 1.0
     """Evidence weighting: directions the points do not observe (e.g. a planar shared frame) get
     at most this sigma, which keeps the graph determined without pulling on them."""
-    segment_sigma: float = 10.0
+    segment_sigma: float = 1.0
     """Sigma of the weak prior that anchors a new map segment (after an edge that failed its checks
-    or a graph update that failed): loops can still join segments."""
+    or a graph update that failed): loops can still join segments. At most 1000 ``min_sigma``:
+    GTSAM reports weights that span more than about 1e7 as an indeterminate system."""
     relinearize_threshold: float = 1e-2
     """iSAM2 relinearizes a variable whose tangent step exceeds this (a fifth of the default sigma;
     GTSAM's default 0.1 leaves loops half-absorbed; benchmarks/bench_backend.py)."""
@@ -300,7 +301,10 @@ class BackendConfig(Section):
                      "segment_sigma", "relinearize_threshold", "loop_step_threshold"):
             self._require(name, getattr(self, name) > 0, "a positive number")
         self._require("fallback_sigma_scale", self.fallback_sigma_scale >= 1, "at least 1")
-        self._require("max_sigma", self.max_sigma >= self.min_sigma, f">= --backend-min-sigma ({self.min_sigma})")
+        self._require("max_sigma", self.min_sigma <= self.max_sigma <= 1000 * self.min_sigma,
+                      f"between --backend-min-sigma and 1000 times it ({self.min_sigma}, {1000 * self.min_sigma})")
+        self._require("segment_sigma", self.segment_sigma <= 1000 * self.min_sigma,
+                      f"at most 1000 times --backend-min-sigma ({1000 * self.min_sigma})")
         self._require("wildfire_threshold", self.wildfire_threshold >= 0, ">= 0")
         self._require("max_loop_iterations", self.max_loop_iterations >= 0, ">= 0")
 

@@ -370,12 +370,14 @@ class SLAMPipeline:
             self.backend.add_submap(submap_id, None)
             self.backend.update()
             return
+        relative = np.eye(4)  # where a new segment starts relative to the last node, without a measurement
         if isinstance(odometry, Alignment):
             previous = self._by_frame[self._prior.index].submap_id
             self.edges.append(EdgeReport.measured("odometry", previous, submap_id, self._prior.index, odometry))
             if odometry.fallback:
                 log.info("submap %d->%d: %s", previous, submap_id, odometry.fallback)
-            self.backend.add_submap(submap_id, self._graph_measurement(odometry.H), self.edge_information(odometry))
+            relative = self._graph_measurement(odometry.H)
+            self.backend.add_submap(submap_id, relative, self.edge_information(odometry))
             try:
                 self.backend.update()
                 return
@@ -383,7 +385,7 @@ class SLAMPipeline:
                 odometry = f"the graph could not be solved with this edge ({exc})"
                 self.edges[-1].accepted, self.edges[-1].reason = False, odometry
         reason = odometry if isinstance(odometry, str) else "no shared frame with an earlier submap"
-        self._start_segment(submap_id, reason)
+        self._start_segment(submap_id, reason, relative)
 
     def close_loops(self, work: SubmapInput, dense: DenseSubmap) -> None:
         """Verify every loop candidate (``sl4slam.loops``) and add the accepted ones to the graph."""
@@ -439,10 +441,11 @@ class SLAMPipeline:
     def _graph_measurement(self, H: np.ndarray) -> np.ndarray:
         return normalize_sl4(H) if self.backend.kind == "sl4" else H
 
-    def _start_segment(self, submap_id: int, reason: str) -> None:
+    def _start_segment(self, submap_id: int, reason: str, relative: np.ndarray) -> None:
+        """Add the node with a weak prior at ``H_world_last @ relative`` (the rejected measurement
+        when it was usable, else the last node's frame)."""
         last = self.keyframes[-1].submap_id
-        guess = self.backend.H_world_submap(last)
-        self.backend.start_segment(submap_id, guess)
+        self.backend.start_segment(submap_id, self.backend.H_world_submap(last) @ relative)
         self.backend.update()
         self.edges.append(EdgeReport(kind="segment", submap_from=last, submap_to=submap_id,
                                      frame_index=self._prior.index if self._prior is not None else -1,
