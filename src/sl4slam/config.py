@@ -470,10 +470,14 @@ class SimulatorConfig(Section):
     seen from elsewhere, which a frontend reconstructs correctly)."""
 
     def validate(self) -> None:
-        from .frontend.simulated import _validate  # the corruption model documents its own ranges
-
         super().validate()
-        _validate(self)
+        for name in ("perspective", "shear", "scale", "depth_noise", "outlier_magnitude", "confidence_jitter"):
+            self._require(name, getattr(self, name) >= 0, ">= 0")
+        self._require("outlier_fraction", 0 <= self.outlier_fraction < 1, "in [0, 1)")
+        self._require("outlier_blob_px", self.outlier_blob_px > 0, "> 0 px")
+        self._require("confidence_scale", self.confidence_scale > 0, "> 0")
+        self._require("outlier_confidence", 0 <= self.outlier_confidence <= 1, "in [0, 1]")
+        self._require("seed", self.seed >= 0, ">= 0")
         self._require("false_loop_rate", 0 <= self.false_loop_rate <= 1, "in [0, 1]")
         self._require("false_loop_min_distance", self.false_loop_min_distance >= 0, ">= 0 m")
         self._require("false_loop_min_angle", 0 <= self.false_loop_min_angle <= 180, "in [0, 180] degrees")
