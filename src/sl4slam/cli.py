@@ -35,6 +35,7 @@ SECTION_PREFIX = {
     "sim": "sim-",
     "vggt": "",
     "output": "",
+    "upgrade": "upgrade-",
 }
 # Short aliases for the paper's thresholds.
 ALIASES = {("submap", "tau_conf"): "--tau-conf", ("submap", "w_loop"): "--w-loop"}
@@ -44,6 +45,8 @@ CHOICES = {
     ("retrieval", "kind"): ["auto", "salad", "orb", "none"],
     ("backend", "loop_kernel"): ["none", "huber", "cauchy"],
     ("vggt", "preprocess_mode"): ["crop", "pad"],
+    ("upgrade", "focal_model"): ["shared", "varying"],
+    ("upgrade", "loss"): ["linear", "soft_l1", "huber", "cauchy", "arctan"],
 }
 
 
