@@ -13,20 +13,23 @@ for the sought ``H = H_metric_world`` (Hartley & Zisserman, Multiple View Geomet
    centred on the median camera centre and measured in units of ``scene_scale``.
 2. Linear estimate (H&Z 19.3.1): with the normalized cameras ``w_i = P_i Q* P_i^T`` should be
    ``diag(g^2, g^2, 1)``: four equations per camera linear in the 10 entries of ``Q*``
-   (``w_12 = w_13 = w_23 = 0``, ``w_11 = w_22``), solved by SVD; rank 3 is enforced by zeroing
-   the smallest eigenvalue.
+   (``w_12 = w_13 = w_23 = 0``, ``w_11 = w_22``), solved in the least-squares sense; rank 3 is
+   enforced by zeroing the smallest eigenvalue.
 3. Robust refinement over the 8 (+1) parameters of ``H^-1 = [[A, 0], [-p^T A, 1]]``: ``A`` upper
    triangular with ``A_33 = 1`` (5) and the plane at infinity ``(p, 1)`` (3), plus the shared log
    focal length for the "shared" model; this form already fixes rotation, translation and scale
    of the metric frame. Each camera ``P_i H^-1 = K_i [R_i | t_i]`` contributes the residuals of
    :func:`intrinsic_constraint_residuals` and a focal residual, minimized by
-   ``scipy.optimize.least_squares`` with a robust loss from both the linear estimate and the
-   identity (the input is often nearly metric), keeping the lower cost; then the cameras whose
-   residual is within ``outlier_factor`` loss scales are kept and the fit repeated on them alone.
-4. Degeneracy: the smallest over largest singular value of the refinement's (loss-weighted)
-   Jacobian at the solution. Pure rotation leaves the plane at infinity free, pure translation and
-   other critical motions (H&Z 19.9) a calibration direction: the upgrade is then skipped and the
-   reason names the undetermined part.
+   ``scipy.optimize.least_squares`` with a robust loss from the linear estimate and, unless that
+   already explains most cameras, from the identity (the input is often nearly metric), keeping
+   the lower cost; then the cameras whose residual is within ``outlier_factor`` loss scales are
+   kept and the fit repeated on them alone.
+4. Degeneracy, at the solution: numerically, the smallest over largest singular value of the
+   refinement's (loss-weighted) Jacobian; statistically, the predicted standard deviation of the
+   upgrade from the residuals and the Jacobian. Pure rotation leaves the plane at infinity free,
+   pure translation and other critical motions (H&Z 19.9) a calibration direction, a small
+   baseline with noisy cameras leaves the plane at infinity uncertain: the upgrade is then
+   skipped and the reason names the part that is not determined.
 5. Never worse: skipped unless the constraint residual of the kept cameras falls clearly (config
    ``max_residual_ratio``).
 6. Gauge: the similarity is chosen so that the first kept keyframe keeps its camera centre and
@@ -169,7 +172,6 @@ class _ConstraintFit:
         self.last = P_n[:, :, 3]
         self.shared = config.focal_model == "shared"
         self.weight = config.focal_weight
-        self.num_params = NUM_GEOMETRY + (1 if self.shared else 0)
         self.config = config
 
     @staticmethod
@@ -226,6 +228,18 @@ class _ConstraintFit:
             self.residuals, theta0, jac=self.jacobian, method="trf", loss=config.loss, f_scale=config.loss_scale,
             max_nfev=config.max_iterations, ftol=1e-15, xtol=1e-15, gtol=1e-15, x_scale=1.0,
         )
+
+
+def _normalized_cameras(P: np.ndarray, principal_points: np.ndarray, f0: float, T_norm: np.ndarray) -> np.ndarray:
+    """``N_i^-1 P_i T_norm^-1`` with unit Frobenius norm, ``N_i = [[f0, 0, u_i], [0, f0, v_i], [0, 0, 1]]``:
+    pixels centred on the wanted principal point over a rough focal, the world in normalized units
+    (H&Z 19.3.3: well-scaled equations)."""
+    N_inv = np.zeros((len(P), 3, 3))
+    N_inv[:, 0, 0] = N_inv[:, 1, 1] = 1.0 / f0
+    N_inv[:, :2, 2] = -principal_points / f0
+    N_inv[:, 2, 2] = 1.0
+    P_n = N_inv @ P @ np.linalg.inv(T_norm)
+    return P_n / np.linalg.norm(P_n, axis=(1, 2), keepdims=True)
 
 
 def _linear_start(P_n: np.ndarray) -> np.ndarray | None:
@@ -384,39 +398,31 @@ def estimate_metric_upgrade(
 
     # 1. Normalization: centred pixels over a rough focal; world centred, in units of scene_scale.
     f0 = float(np.median(sizes.sum(axis=1)) / 2.0) if sizes is not None else float(np.median(focals_in))
-    N_inv = np.zeros((N, 3, 3))
-    N_inv[:, 0, 0] = N_inv[:, 1, 1] = 1.0 / f0
-    N_inv[:, :2, 2] = -pp / f0
-    N_inv[:, 2, 2] = 1.0
-    centre = np.median(C_in, axis=0)
     T_norm = np.eye(4)
     T_norm[:3, :3] /= scene_scale
-    T_norm[:3, 3] = -centre / scene_scale
-    P_n = N_inv @ P @ np.linalg.inv(T_norm)
-    P_n /= np.linalg.norm(P_n, axis=(1, 2), keepdims=True)
+    T_norm[:3, 3] = -np.median(C_in, axis=0) / scene_scale
+    P_n = _normalized_cameras(P, pp, f0, T_norm)
 
-    # 2.-3. Linear start and the identity start, robust refinement of both, keep the better.
+    # 2.-3. Robust refinement from the linear estimate, and from the identity unless the first
+    # already explains most cameras within the noise; the lower robust cost wins.
     fit = _ConstraintFit(P_n, config)
-    starts = {"identity": np.array([1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0])}
-    linear = _linear_start(P_n)
-    if linear is not None:
-        starts["linear"] = linear
+    starts = {"linear": _linear_start(P_n), "identity": np.array([1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0])}
     best, best_start = None, ""
-    for name in ("linear", "identity"):
-        if name not in starts:
+    for name, theta0 in starts.items():
+        if theta0 is None:
             continue
-        result = fit.solve(fit.with_focal(starts[name]))
+        result = fit.solve(fit.with_focal(theta0))
         if np.isfinite(result.cost) and (best is None or result.cost < best.cost):
             best, best_start = result, name
         if best is not None and _fits_most(fit.camera_rms(best.x), config):
-            break  # a start that explains most cameras within the noise needs no second opinion
+            break
     if best is None:
         return skipped("refinement failed (non-finite residuals)")
 
     camera_rms = fit.camera_rms(best.x)
     inliers = camera_rms <= config.outlier_factor * config.loss_scale
     if inliers.sum() < max(config.min_inlier_fraction * N, config.min_keyframes):
-        return skipped(f"too few consistent cameras ({inliers.sum()} of {N})", inliers, start_name=best_start)
+        return skipped(f"too few consistent cameras ({inliers.sum()} of {N})", inliers, start=best_start)
     kept_fit = _ConstraintFit(P_n[inliers], config)
     final = kept_fit.solve(best.x)
 
@@ -424,10 +430,10 @@ def estimate_metric_upgrade(
     condition, uncertainty, weak_part = _determination(kept_fit, final)
     if not condition >= config.min_condition:
         return skipped(f"degenerate motion: {weak_part} is undetermined (condition {condition:.1e} < {config.min_condition:.0e})",
-                       inliers, condition, start_name=best_start)
+                       inliers, condition, start=best_start)
     if not uncertainty <= config.max_uncertainty:
         return skipped(f"degenerate motion: {weak_part} is poorly determined (uncertainty {uncertainty:.2g} > {config.max_uncertainty:g})",
-                       inliers, condition, uncertainty, start_name=best_start)
+                       inliers, condition, uncertainty, start=best_start)
 
     # 6. Gauge, then 5. the never-worse check on the cameras as they will be.
     A, p = fit.calibration(final.x)
@@ -436,7 +442,7 @@ def estimate_metric_upgrade(
     H_normalized[3, :3] = p
     H = _similarity_gauge(H_normalized @ T_norm, P, T_in, C_in, inliers)
     if H is None:
-        return skipped("refinement failed (upgrade not invertible)", inliers, condition, uncertainty, start_name=best_start)
+        return skipped("refinement failed (upgrade not invertible)", inliers, condition, uncertainty, start=best_start)
     K_out, _, _ = decompose_projection(P @ np.linalg.inv(H))
     constraints_out = intrinsic_constraint_residuals(K_out, pp)
     before, after = _rms(constraints_in[inliers]), _rms(constraints_out[inliers])
