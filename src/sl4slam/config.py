@@ -253,7 +253,7 @@ class UpgradeConfig:
     max_uncertainty: float = 0.01
     """Skip when the predicted standard deviation of the upgrade (plane at infinity in units of
     the scene depth, calibration in units of the focal; from the residuals and the Jacobian) is
-    above this, i.e. a 1 % distortion of the map: near-degenerate motion with noisy cameras, e.g.
+    above this, i.e. a distortion of the map by a hundredth: near-degenerate motion with noisy cameras, e.g.
     a rotation with a baseline of a centimetre. Our measurement: pipeline runs 2e-4 to 2e-3, and
     the realized map error is 1-3x this figure (benchmarks/results/upgrade.md)."""
     max_iterations: int = 100
