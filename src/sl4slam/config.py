@@ -232,8 +232,8 @@ class UpgradeConfig:
     point 0.01 focal lengths off (our choice: the constraints are of like accuracy)."""
     loss: str = "cauchy"
     """Robust loss of the refinement (scipy.optimize.least_squares): "cauchy", "soft_l1", "huber",
-    "arctan" or "linear" (none). Our measurement (benchmarks/results/upgrade.md): with 10-40 % of
-    the cameras broken only "cauchy" was applied and exact in every case; "linear" failed."""
+    "arctan" or "linear" (none). Our measurement (benchmarks/results/upgrade.md): with 0.1 to 0.4
+    of the cameras broken, only "cauchy" was applied every time (at the noise floor); "linear" failed."""
     loss_scale: float = 0.01
     """Residual (unitless) beyond which the robust loss down-weights, the noise expected of a good
     camera. Our measurement on simulated pipeline runs: the kept keyframes fit to an RMS of
