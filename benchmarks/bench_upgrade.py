@@ -35,7 +35,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from sl4slam.config import UpgradeConfig
-from sl4slam.geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse, to_4x4, umeyama_sim3
+from sl4slam.geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse, umeyama_sim3
 from sl4slam.io import read_tum_trajectory
 from sl4slam.synthetic.correspondences import near_identity_sl4
 from sl4slam.synthetic.world import camera_path
@@ -308,7 +308,7 @@ def bench_pipeline(tum: Path | None) -> list[str]:
     from sl4slam.frontend import make_frontend
     from sl4slam.io import open_source
     from sl4slam.metrics import ate
-    from sl4slam.pipeline import SLAMPipeline
+    from sl4slam.pipeline import SLAMPipeline, world_cameras
     from sl4slam.retrieval import make_retrieval
     from sl4slam.config import SLAMConfig
     from sl4slam.synthetic import write_synthetic_sequence
@@ -329,7 +329,7 @@ def bench_pipeline(tum: Path | None) -> list[str]:
             config.retrieval.kind = retrieval
             pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
             result = pipeline.run(open_source(str(path)), progress=False)
-            P = np.stack([k.K @ to_4x4(k.T_cam_submap)[:3] @ np.linalg.inv(result.H_world_submap[k.submap_id]) for k in result.keyframes])
+            P = world_cameras(result.keyframes, result.H_world_submap)
             upgrade = estimate_metric_upgrade(P, pp, config.upgrade)
             _, T_after, _ = decompose_projection(upgrade_cameras(P, upgrade.H_metric_world))
             ts = result.timestamps
