@@ -130,9 +130,10 @@ def test_principal_point_is_an_input_per_camera():
     K_true[:, :2, 2] = pp
     P = cameras(T_true, K_true) @ np.linalg.inv(random_distortion(rng, T_true[:, :3, 3]))
 
-    upgrade = estimate_metric_upgrade(P, pp, UpgradeConfig(), scene_scale=scene_scale(P))
+    upgrade = estimate_metric_upgrade(P, pp, UpgradeConfig(), image_sizes=(WIDTH, HEIGHT), scene_scale=scene_scale(P))
 
     assert upgrade.applied and upgrade.residual_after < 1e-9
+    assert upgrade.details["f0"] == (WIDTH + HEIGHT) / 2.0  # the image size sets the rough focal
     K, _, _ = decompose_projection(upgrade_cameras(P, upgrade.H_metric_world))
     np.testing.assert_allclose(K[:, :2, 2], pp, atol=1e-6)
 
