@@ -580,7 +580,7 @@ class UpgradeConfig(Section):
     loss_scale: float = 0.01
     """Residual (unitless) beyond which the robust loss down-weights, the noise expected of a good
     camera. Our measurement on simulated pipeline runs: the kept keyframes fit to an RMS of
-    0.0008-0.008 after the upgrade (benchmarks/results/upgrade.md)."""
+    0.0004-0.008 after the upgrade (benchmarks/results/upgrade.md)."""
     outlier_factor: float = 3.0
     """After the robust fit a camera is kept when its residual (RMS of its constraints) is below
     this many ``loss_scale``s; 3: the usual 3-sigma rule with ``loss_scale`` as the noise."""
