@@ -543,6 +543,86 @@ class OutputConfig(Section):
 
 
 @dataclass
+class UpgradeConfig(Section):
+    """Projective-to-metric upgrade of the finished map (``sl4slam.upgrade``): self-calibration
+    through the absolute dual quadric (Hartley & Zisserman, Multiple View Geometry, 2nd ed., ch. 19,
+    "H&Z") from zero skew, square pixels, a known principal point and one focal length.
+
+    Residuals are unitless: skew / f, fy / fx - 1, principal-point offset / f (and, for the focal
+    model, log focal ratios), so 0.01 reads "a hundredth of the focal length"."""
+
+    section: ClassVar[str] = "upgrade"
+    flag_prefix: ClassVar[str] = "upgrade-"
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {
+        "focal_model": ("shared", "varying"),
+        "loss": ("cauchy", "soft_l1", "huber", "arctan", "linear"),
+    }
+    advanced: ClassVar[frozenset[str]] = frozenset({
+        "focal_weight", "loss", "loss_scale", "outlier_factor", "min_inlier_fraction", "min_keyframes",
+        "min_condition", "max_uncertainty", "max_iterations", "max_residual_ratio"})
+
+    enabled: bool = True
+    """Estimate the upgrade (it is applied only when well conditioned and clearly better)."""
+    focal_model: str = "shared"
+    """"shared": one focal length for every keyframe (one physical camera films the video; the
+    strongest constraint, with the fewest critical motions: Sturm, CVPR 1997, vs. varying focal,
+    Sturm, ICCV 1999). "varying": each keyframe's focal free (a zoom, or a frontend whose focal
+    wanders); no smoothness prior, which would bias a real zoom: the four other constraints per
+    camera determine the focal (H&Z 19.3)."""
+    focal_weight: float = 1.0
+    """Shared model: weight of the focal residual log(f_i / f) against the skew / aspect /
+    principal-point residuals; 1: a focal deviation of 0.01 (relative) counts like a principal
+    point 0.01 focal lengths off (our choice: the constraints are of like accuracy)."""
+    loss: str = "cauchy"
+    """Robust loss of the refinement (scipy.optimize.least_squares): "cauchy", "soft_l1", "huber",
+    "arctan" or "linear" (none). Our measurement (benchmarks/results/upgrade.md): with 0.1 to 0.4
+    of the cameras broken, only "cauchy" was applied every time (at the noise floor); "linear" failed."""
+    loss_scale: float = 0.01
+    """Residual (unitless) beyond which the robust loss down-weights, the noise expected of a good
+    camera. Our measurement on simulated pipeline runs: the kept keyframes fit to an RMS of
+    0.0004-0.008 after the upgrade (benchmarks/results/upgrade.md)."""
+    outlier_factor: float = 3.0
+    """After the robust fit a camera is kept when its residual (RMS of its constraints) is below
+    this many ``loss_scale``s; 3: the usual 3-sigma rule with ``loss_scale`` as the noise."""
+    min_inlier_fraction: float = 0.5
+    """Skip when fewer cameras than this fraction are kept: most keyframes must agree (our choice)."""
+    min_keyframes: int = 3
+    """Fewest keyframes: the linear absolute-dual-quadric estimate with a known principal point,
+    zero skew and unit aspect ratio needs 3 views (H&Z 19.3)."""
+    min_condition: float = 1e-3
+    """Skip when the refinement's Jacobian at the solution has smallest / largest singular value
+    below this (plane at infinity in units of the scene depth): pure rotation, pure translation and
+    other critical motions (H&Z 19.9) leave a direction undetermined. Our measurement: hand-held
+    paths >= 0.02, degenerate motions <= 1e-4 with 0.003 noise (benchmarks/results/upgrade.md)."""
+    max_uncertainty: float = 0.01
+    """Skip when the predicted standard deviation of the upgrade (plane at infinity in units of the
+    scene depth, calibration in units of the focal; from the residuals and the Jacobian) is above
+    this, i.e. a distortion of the map by a hundredth: near-degenerate motion with noisy cameras,
+    e.g. a rotation with a baseline of a hundredth of the scene depth. Our measurement: hand-held
+    paths and pipeline runs 2e-4 to 7e-3 (benchmarks/results/upgrade.md)."""
+    max_iterations: int = 100
+    """Most residual evaluations of each robust refinement (scipy's ``max_nfev``); our tests and
+    pipeline runs converge within 75, degenerate motions wander until this cap."""
+    max_residual_ratio: float = 0.8
+    """Never make it worse: apply only when the constraint residual after the upgrade is below
+    this fraction of the one before (on the kept cameras), so an already metric map (the residual
+    is noise) is left untouched (our choice)."""
+
+    def validate(self) -> None:
+        super().validate()
+        self._require("enabled", isinstance(self.enabled, bool), "true or false")
+        self._require("focal_weight", self.focal_weight > 0, "> 0")
+        self._require("loss_scale", self.loss_scale > 0, "> 0")
+        self._require("outlier_factor", self.outlier_factor >= 1, ">= 1")
+        self._require("min_inlier_fraction", 0 < self.min_inlier_fraction <= 1, "in (0, 1]")
+        self._require("min_keyframes", self.min_keyframes >= 3, "at least 3 (H&Z 19.3)")
+        self._require("min_condition", 0 <= self.min_condition < 1, "in [0, 1)")
+        self._require("max_uncertainty", self.max_uncertainty > 0, "> 0")
+        self._require("max_iterations", self.max_iterations >= 1, "at least 1")
+        self._require("max_residual_ratio", 0 < self.max_residual_ratio <= 1, "in (0, 1]")
+
+
+@dataclass
 class SLAMConfig(Section):
     """Everything a run needs."""
 
@@ -568,6 +648,7 @@ class SLAMConfig(Section):
     sim: SimulatorConfig = field(default_factory=SimulatorConfig)
     vggt: VGGTConfig = field(default_factory=VGGTConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    upgrade: UpgradeConfig = field(default_factory=UpgradeConfig)
 
     def validate(self) -> None:
         """Check every section, then the settings that depend on each other."""
