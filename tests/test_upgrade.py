@@ -348,7 +348,7 @@ def test_too_few_keyframes_are_skipped(count):
 
 def test_switched_off_is_skipped():
     P = cameras(camera_path(20, 0), intrinsics(np.full(20, FOCAL)))
-    upgrade = estimate_metric_upgrade(P, PP, UpgradeConfig(enabled=False))
+    upgrade = estimate_metric_upgrade(P, PP, UpgradeConfig(mode="off"))
     assert (upgrade.applied, upgrade.reason) == (False, "upgrade off")
 
 
@@ -436,9 +436,9 @@ def test_bad_settings_give_one_clear_line(change, flag):
 def test_settings_from_file_and_flags():
     config = config_from_dict({"upgrade": {"focal_model": "varying", "loss_scale": 0.02}})
     assert (config.upgrade.focal_model, config.upgrade.loss_scale) == ("varying", 0.02)
-    args = build_parser().parse_args(["run", "src", "--out", "o", "--no-upgrade-enabled", "--upgrade-focal-model", "varying"])
+    args = build_parser().parse_args(["run", "src", "--out", "o", "--metric-upgrade", "off", "--upgrade-focal-model", "varying"])
     config = config_from_args(args)
-    assert config.upgrade.enabled is False and config.upgrade.focal_model == "varying"
+    assert config.upgrade.mode == "off" and config.upgrade.focal_model == "varying"
 
 
 @pytest.mark.parametrize("P, pp, message", [

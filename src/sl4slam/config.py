@@ -553,7 +553,9 @@ class UpgradeConfig(Section):
 
     section: ClassVar[str] = "upgrade"
     flag_prefix: ClassVar[str] = "upgrade-"
+    flag_names: ClassVar[dict[str, str]] = {"mode": "--metric-upgrade"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
+        "mode": ("on", "off"),
         "focal_model": ("shared", "varying"),
         "loss": ("cauchy", "soft_l1", "huber", "arctan", "linear"),
     }
@@ -561,8 +563,10 @@ class UpgradeConfig(Section):
         "focal_weight", "loss", "loss_scale", "outlier_factor", "min_inlier_fraction", "min_keyframes",
         "min_condition", "max_uncertainty", "max_iterations", "max_residual_ratio"})
 
-    enabled: bool = True
-    """Estimate the upgrade (it is applied only when well conditioned and clearly better)."""
+    mode: str = "on"
+    """"on": estimate the upgrade at the end of a run and apply it to every node, pose and map point
+    when it is well conditioned and clearly better (benchmarks/results/upgrade.md: it never made a
+    run worse); "off": leave the map in the first submap's projective frame."""
     focal_model: str = "shared"
     """"shared": one focal length for every keyframe (one physical camera films the video; the
     strongest constraint, with the fewest critical motions: Sturm, CVPR 1997, vs. varying focal,
@@ -610,7 +614,6 @@ class UpgradeConfig(Section):
 
     def validate(self) -> None:
         super().validate()
-        self._require("enabled", isinstance(self.enabled, bool), "true or false")
         self._require("focal_weight", self.focal_weight > 0, "> 0")
         self._require("loss_scale", self.loss_scale > 0, "> 0")
         self._require("outlier_factor", self.outlier_factor >= 1, ">= 1")

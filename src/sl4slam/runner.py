@@ -190,6 +190,10 @@ def print_summary(summary: dict, out_dir: Path, stream=sys.stdout) -> None:
         dropped["unreadable"] = skipped
     if dropped:
         print("dropped frames: " + ", ".join(f"{v} {k}" for k, v in dropped.items()) + " (see summary.json)", file=stream)
+    for upgrade in summary.get("metric_upgrade", []):
+        state = (f"applied, focal {upgrade['focal_px']:.1f} px, constraint residual {upgrade['residual_before']:.3g} -> "
+                 f"{upgrade['residual_after']:.3g}") if upgrade["applied"] else f"skipped: {upgrade['reason']}"
+        print(f"metric upgrade{' of segment ' + str(upgrade['segment']) if upgrade['segment'] else ''}: {state}", file=stream)
     if "ate" in summary:
         print(f"ATE RMSE {summary['ate']['rmse']:.4f} m (Sim(3)-aligned, {summary['ate']['poses']} keyframes)", file=stream)
     print(f"outputs in {out_dir}", file=stream)

@@ -391,7 +391,7 @@ def estimate_metric_upgrade(
             seconds=time.perf_counter() - start, details=details,
         )
 
-    if not config.enabled:
+    if config.mode == "off":
         return skipped("upgrade off")
     if N < config.min_keyframes:
         return skipped(f"too few keyframes ({N} < {config.min_keyframes})")
