@@ -73,6 +73,8 @@ class SubmapPrediction:
         points: optional ``(S, H, W, 3)`` float32 point map in the submap frame (VGGT's point
             head); the pipeline unprojects ``depth`` unless told to use this.
         points_confidence: optional ``(S, H, W)`` float32 confidence of ``points``.
+        principal_point: optional ``(S, 2)`` float64, the principal point the frontend assumes
+            for each frame, on the prediction grid (VGGT: the grid centre ``(W/2, H/2)``).
     """
 
     depth: np.ndarray
@@ -82,6 +84,7 @@ class SubmapPrediction:
     colors: np.ndarray
     points: np.ndarray | None = None
     points_confidence: np.ndarray | None = None
+    principal_point: np.ndarray | None = None
 
     @property
     def num_frames(self) -> int:

@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import UserError
 from ..types import Frame, Frontend, SubmapPrediction
 
-_FIELDS = ("depth", "confidence", "T_cam_submap", "K", "colors", "points", "points_confidence")
+_FIELDS = ("depth", "confidence", "T_cam_submap", "K", "colors", "points", "points_confidence", "principal_point")
 
 
 def _path(directory: Path, submap_id: int) -> Path:

@@ -81,21 +81,29 @@ it without reconstructing.
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
 from scipy import ndimage
+from scipy.spatial.transform import Rotation
+from scipy.special import ndtr
 
-from ..config import SimulatorConfig
+from ..config import SIM_PROFILES, SimulatorConfig
 from ..errors import UserError
 from ..geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse, unproject_depth
 from ..types import Frame, SubmapPrediction
 
-# Stream tags for SeedSequence spawn keys: the distortion and the per-frame draws (noise, blobs,
-# confidence; each spawned into its own stream) never share random numbers.
+# Stream tags for SeedSequence spawn keys: the distortion, the gauge and the per-frame draws (noise,
+# blobs, confidence; camera, focal, warp, flying pixels; each in its own stream) never share random
+# numbers, so switching one term on or off leaves every other term's draws as they were.
 _DISTORTION_STREAM = 0
 _FRAME_STREAM = 1
+_FRAME_ERROR_STREAM = 2
+_GAUGE_STREAM = 3
+_FRAME_OWN_STREAM = 4  # the part of a frame's errors shared by every submap it appears in
+# Sub-streams of _FRAME_ERROR_STREAM.
+_ROTATION, _TRANSLATION, _FOCAL, _WARP, _FLYING = range(5)
 
 # Cell size of the blob field relative to outlier_blob_px (calibrated so the blobs' mean
 # equivalent radius is about outlier_blob_px at the default fraction and above).
@@ -134,24 +142,28 @@ class SimulatedFrontend:
         cfg = self.config
         truth = _TrueSubmap(frames, submap_id)
         H = self._distortion(truth, submap_id)
+        K_frame, T_cam_ref, cameras_exact = self._frame_cameras(truth, frames, submap_id)
 
         # Distorted cameras: P_i H^-1 = lambda_i K'_i [R'_i | t'_i].
-        P = np.einsum("sij,sjk->sik", truth.K, truth.T_cam_ref[:, :3, :])
+        P = np.einsum("sij,sjk->sik", K_frame, T_cam_ref[:, :3, :])
         K_pred, T_submap_cam, _ = decompose_projection(P @ np.linalg.inv(H))
         T_cam_submap = se3_inverse(T_submap_cam)
 
         S, height, width = truth.depth.shape
         depth_clean = np.empty((S, height, width), dtype=np.float64)
         for i in range(S):
-            X_true = truth.points[i]
-            homogeneous_weight = X_true.astype(np.float64) @ H[3, :3] + H[3, 3]
-            X_pred = apply_transform(H, X_true)
+            # The frame's own depth placed by its own (possibly wrong) camera and focal length.
+            X_frame = truth.points[i] if cameras_exact else unproject_depth(
+                truth.depth[i : i + 1], K_frame[i : i + 1], T_cam_ref[i : i + 1])[0]
+            homogeneous_weight = X_frame.astype(np.float64) @ H[3, :3] + H[3, 3]
+            X_pred = apply_transform(H, X_frame)
             depth_clean[i] = X_pred @ T_cam_submap[i, 2, :3] + T_cam_submap[i, 2, 3]
             if not (np.all(homogeneous_weight > 0) and np.all(depth_clean[i] > 0)):
+                source = "" if cfg.profile == "exact" else f", {cfg.profile} profile"
                 raise UserError(
                     f"the simulated distortion of submap {submap_id} is too strong for this scene (points cross "
                     f"the plane at infinity or fall behind the camera of frame {frames[i].index}); lower --sim-perspective "
-                    f"(now {cfg.perspective}) or --sim-shear / --sim-scale"
+                    f"(now {cfg.perspective}{source}) or --sim-shear / --sim-scale"
                 )
 
         z_median = float(np.median(depth_clean[truth.measured]))
@@ -170,6 +182,7 @@ class SimulatedFrontend:
             T_cam_submap=T_cam_submap[:, :3, :],
             K=K_pred,
             colors=np.stack([np.asarray(f.rgb, dtype=np.uint8) for f in frames]),
+            principal_point=truth.K[:, :2, 2].copy(),
         )
 
     def distortion(self, frames: Sequence[Frame], submap_id: int) -> np.ndarray:
@@ -194,8 +207,12 @@ class SimulatedFrontend:
 
         B = np.diag(np.exp(cfg.shear * (log_stretch - log_stretch.mean())))
         B[np.triu_indices(3, k=1)] = cfg.shear * off_diagonal
+        log_global_scale = cfg.scale * log_scale
+        if cfg.gauge_scale_ratio != 1.0:
+            gauge_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(_GAUGE_STREAM, int(submap_id))))
+            log_global_scale = log_global_scale + np.log(cfg.gauge_scale_ratio) * (gauge_rng.random() - 0.5)
         G = np.eye(4)
-        G[:3, :3] = np.exp(cfg.scale * log_scale) * B
+        G[:3, :3] = np.exp(log_global_scale) * B
         G[3, :3] = cfg.perspective * direction
         if submap_id == 0 and not cfg.distort_first_submap:
             G = np.eye(4)
@@ -205,10 +222,55 @@ class SimulatedFrontend:
         H = G @ N if cfg.normalize_scale else np.linalg.inv(N) @ G @ N
         return normalize_sl4(H)
 
+    def _frame_rng(self, submap_id: int, frame_index: int, term: int) -> np.random.Generator:
+        """The generator of one per-frame error term (camera, focal, warp, flying pixels) in one submap."""
+        key = (_FRAME_ERROR_STREAM, int(submap_id), int(frame_index), term)
+        return np.random.default_rng(np.random.SeedSequence(self.config.seed, spawn_key=key))
+
+    def _consistent_draw(
+        self, draw: Callable[[np.random.Generator], np.ndarray], submap_id: int, frame_index: int, term: int
+    ) -> np.ndarray:
+        """A unit-variance draw of one term: ``frame_consistency`` of its variance is the frame's own (the
+        same in every submap), the rest is drawn for this submap."""
+        share = self.config.frame_consistency
+        submap_part = draw(self._frame_rng(submap_id, frame_index, term)) if share < 1 else 0.0
+        if share == 0:
+            return submap_part
+        own_rng = np.random.default_rng(
+            np.random.SeedSequence(self.config.seed, spawn_key=(_FRAME_OWN_STREAM, int(frame_index), term)))
+        return np.sqrt(share) * draw(own_rng) + np.sqrt(1.0 - share) * submap_part
+
+    def _frame_cameras(
+        self, truth: "_TrueSubmap", frames: Sequence[Frame], submap_id: int
+    ) -> tuple[np.ndarray, np.ndarray, bool]:
+        """The cameras the frontend believes in: ``K (S, 3, 3)``, ``T_cam_ref (S, 4, 4)``, and whether
+        they are the true ones (then the very same arrays as ``truth``'s)."""
+        cfg = self.config
+        if cfg.camera_rotation_deg == 0 and cfg.camera_translation == 0 and cfg.focal_error == 0:
+            return truth.K, truth.T_cam_ref, True
+        # Errors are the same for every position in the window; they grow with the window's length
+        # past camera_window_frames (see the module docstring).
+        growth = max(1.0, len(frames) / cfg.camera_window_frames)
+        shift_sigma = cfg.camera_translation * growth / truth.normalizing_scale()
+        rotation_sigma = np.deg2rad(cfg.camera_rotation_deg) * growth
+        K = truth.K.copy()
+        T_ref_cam = se3_inverse(truth.T_cam_ref)
+        for i, frame in enumerate(frames):
+            rotation_vector = rotation_sigma * self._frame_rng(submap_id, frame.index, _ROTATION).standard_normal(3)
+            shift = shift_sigma * self._frame_rng(submap_id, frame.index, _TRANSLATION).standard_normal(3)
+            log_focal = cfg.focal_error * growth * self._consistent_draw(
+                lambda rng: rng.standard_normal(), submap_id, frame.index, _FOCAL)
+            K[i] = scale_focal(K[i], np.exp(log_focal))
+            if i > 0:  # the first camera defines the submap frame: [I | 0] exactly
+                T_ref_cam[i, :3, :3] = T_ref_cam[i, :3, :3] @ Rotation.from_rotvec(rotation_vector).as_matrix()
+                T_ref_cam[i, :3, 3] += shift
+        return K, se3_inverse(T_ref_cam), False
+
     def _corrupt_frame(
         self, depth_clean: np.ndarray, measured: np.ndarray, z_median: float, submap_id: int, frame_index: int
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Noise, outlier blobs and confidence of one frame: ``(H, W)`` float32 depth, confidence."""
+        """Flying pixels, noise, warp, outlier blobs and confidence of one frame: ``(H, W)`` float32
+        depth, confidence."""
         cfg = self.config
         height, width = depth_clean.shape
         root = np.random.SeedSequence(cfg.seed, spawn_key=(_FRAME_STREAM, int(submap_id), int(frame_index)))
@@ -222,11 +284,21 @@ class SimulatedFrontend:
             in_blob = blob_field > np.quantile(blob_field, 1.0 - cfg.outlier_fraction)
             error_sign = np.tanh(2.0 * _smooth_field(blob_rng, height, width, cell))
             log_factor = log_factor + in_blob * (np.log1p(cfg.outlier_magnitude) * error_sign)
-        depth = depth_clean * np.exp(log_factor)
+        if cfg.depth_warp > 0:
+            cell = cfg.depth_warp_length * width
+            warp = self._consistent_draw(lambda rng: _smooth_field(rng, height, width, cell), submap_id, frame_index, _WARP)
+            log_factor = log_factor + cfg.depth_warp * warp
+        low_confidence = in_blob
+        depth_source = depth_clean
+        if cfg.flying_px > 0:
+            flying_rng = self._frame_rng(submap_id, frame_index, _FLYING)
+            depth_source, flying = flying_pixels(depth_clean, cfg.flying_px, cfg.flying_jump, flying_rng)
+            low_confidence = in_blob | flying
+        depth = depth_source * np.exp(log_factor)
 
         jitter = np.exp(cfg.confidence_jitter * confidence_rng.standard_normal((height, width)))
         excess = cfg.confidence_scale * (z_median / depth_clean) * jitter
-        excess = np.where(in_blob, cfg.outlier_confidence * excess, excess)
+        excess = np.where(low_confidence, cfg.outlier_confidence * excess, excess)
         confidence = np.where(measured, 1.0 + excess, 1.0)
         return depth.astype(np.float32), confidence.astype(np.float32)
 
@@ -329,13 +401,59 @@ def _smooth_field(rng: np.random.Generator, height: int, width: int, cell: float
     return (field - field.mean()) / max(float(field.std()), 1e-12)
 
 
+def scale_focal(K: np.ndarray, factor: float) -> np.ndarray:
+    """``(3, 3)`` intrinsics with the focal lengths (and skew) times ``factor``, the principal point kept."""
+    about_principal_point = np.array([[factor, 0.0, (1.0 - factor) * K[0, 2]], [0.0, factor, (1.0 - factor) * K[1, 2]],
+                                      [0.0, 0.0, 1.0]])
+    return about_principal_point @ K
+
+
+def flying_pixels(
+    depth: np.ndarray, band_px: float, jump: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth blended across depth discontinuities, as a regression head blurs depth edges.
+
+    Args:
+        depth: ``(H, W)`` positive depth.
+        band_px: half-width of the band around a discontinuity (px, >= 1).
+        jump: relative depth jump that makes a discontinuity: a pixel is in the band when the
+            largest depth within ``band_px`` exceeds ``(1 + jump)`` times the smallest.
+        rng: draws the mix of each band pixel.
+
+    Returns:
+        ``(H, W)`` depth where band pixels are ``near + a (far - near)`` (``near`` / ``far`` the
+        smallest / largest depth within ``band_px``, ``a`` uniform in (0, 1), smooth over about the
+        band's width), and the ``(H, W)`` bool band.
+    """
+    radius = int(np.floor(band_px))
+    dy, dx = np.mgrid[-radius : radius + 1, -radius : radius + 1]
+    footprint = dx**2 + dy**2 <= band_px**2
+    near = ndimage.minimum_filter(depth, footprint=footprint, mode="nearest")
+    far = ndimage.maximum_filter(depth, footprint=footprint, mode="nearest")
+    band = far > (1.0 + jump) * near
+    mix = ndtr(_smooth_field(rng, *depth.shape, band_px))  # a unit normal field mapped to uniform (0, 1)
+    return np.where(band, near + mix * (far - near), depth), band
+
+
 def _validate(cfg: SimulatorConfig) -> None:
     """One-line errors for settings outside their meaningful range."""
+    if cfg.profile not in SIM_PROFILES:
+        raise UserError(f"--sim-profile must be one of {', '.join(SIM_PROFILES)}, got {cfg.profile!r}")
     checks = [
         ("perspective", cfg.perspective >= 0, ">= 0"),
         ("shear", cfg.shear >= 0, ">= 0"),
         ("scale", cfg.scale >= 0, ">= 0"),
+        ("gauge-scale-ratio", 1 <= cfg.gauge_scale_ratio <= 10, "in [1, 10] (1: no scale gauge)"),
+        ("camera-rotation-deg", 0 <= cfg.camera_rotation_deg <= 30, "in [0, 30] degrees"),
+        ("camera-translation", 0 <= cfg.camera_translation <= 1, "in [0, 1] (a fraction of the mean point distance)"),
+        ("focal-error", 0 <= cfg.focal_error <= 0.5, "in [0, 0.5]"),
+        ("camera-window-frames", cfg.camera_window_frames >= 1, ">= 1"),
         ("depth-noise", cfg.depth_noise >= 0, ">= 0"),
+        ("depth-warp", 0 <= cfg.depth_warp <= 1, "in [0, 1]"),
+        ("depth-warp-length", cfg.depth_warp_length > 0, "> 0 (a fraction of the image width)"),
+        ("flying-px", cfg.flying_px == 0 or 1 <= cfg.flying_px <= 50, "0 (off) or in [1, 50] px"),
+        ("flying-jump", cfg.flying_jump > 0, "> 0"),
+        ("frame-consistency", 0 <= cfg.frame_consistency <= 1, "in [0, 1]"),
         ("outlier-fraction", 0 <= cfg.outlier_fraction < 1, "in [0, 1)"),
         ("outlier-blob-px", cfg.outlier_blob_px > 0, "> 0"),
         ("outlier-magnitude", cfg.outlier_magnitude >= 0, ">= 0"),
