@@ -88,7 +88,7 @@ def add_config_flags(parser: argparse.ArgumentParser, config: Any = None, sectio
         flag = f"--{section}" if f.name == "kind" else "--" + (name if name.startswith(prefix) else prefix + name)
         names = [flag] + ([ALIASES[(section, f.name)]] if (section, f.name) in ALIASES else [])
         dest = f"{section}.{f.name}" if section else f.name
-        help_text = (docs.get(f.name, "") + f" (default: {value})").strip()
+        help_text = (docs.get(f.name, "") + f" (default: {value})").strip().replace("%", "%%")  # argparse formats help with %
         kwargs: dict[str, Any] = {"dest": dest, "default": argparse.SUPPRESS, "help": help_text}
         if isinstance(value, bool):
             kwargs["action"] = argparse.BooleanOptionalAction

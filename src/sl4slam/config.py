@@ -146,7 +146,7 @@ class SimulatorConfig:
     """
 
     profile: str = "exact"
-    """Error profile the settings started from: "exact" (the defaults below: one exact SL(4)
+    """Error profile the settings started from: "exact" (each setting's own default: one exact SL(4)
     transform per submap, cameras exact, small depth noise), "vggt" (calibrated to published VGGT
     figures, cited in ``sl4slam.frontend.simulated``) or "hard" (the upper ends of those ranges, more
     flying pixels and outliers). Applied before any explicit setting; recorded in summary.json."""
