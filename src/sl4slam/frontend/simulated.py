@@ -263,6 +263,13 @@ class SimulatedFrontend:
             principal_point=truth.K[:, :2, 2].copy(),
         )
 
+    def prepare(self) -> None:
+        """Nothing to load: the simulator needs no weights."""
+
+    def grid_colors(self, frame: Frame) -> np.ndarray:
+        """The frame's own RGB: the simulator predicts on the input grid."""
+        return np.asarray(frame.rgb, dtype=np.uint8)
+
     def distortion(self, frames: Sequence[Frame], submap_id: int) -> np.ndarray:
         """``H_submap_true`` ``(4, 4)`` in SL(4) that :meth:`reconstruct` applies to these frames.
 
@@ -529,33 +536,30 @@ def _disk(radius: float) -> np.ndarray:
 
 
 def _validate(cfg: SimulatorConfig) -> None:
-    """One-line errors for settings outside their meaningful range."""
-    if cfg.profile not in SIM_PROFILES:
-        raise UserError(f"--sim-profile must be one of {', '.join(SIM_PROFILES)}, got {cfg.profile!r}")
+    """One-line errors (naming the flag and the config key) for settings outside their meaningful range."""
+    cfg._require("profile", cfg.profile in SIM_PROFILES, "one of " + ", ".join(SIM_PROFILES))
     checks = [
         ("perspective", cfg.perspective >= 0, ">= 0"),
         ("shear", cfg.shear >= 0, ">= 0"),
         ("scale", cfg.scale >= 0, ">= 0"),
-        ("gauge-scale-ratio", 1 <= cfg.gauge_scale_ratio <= 10, "in [1, 10] (1: no scale gauge)"),
-        ("camera-rotation-deg", 0 <= cfg.camera_rotation_deg <= 30, "in [0, 30] degrees"),
-        ("camera-translation", 0 <= cfg.camera_translation <= 1, "in [0, 1] (a fraction of the mean point distance)"),
-        ("focal-error", 0 <= cfg.focal_error <= 0.5, "in [0, 0.5]"),
-        ("camera-window-frames", cfg.camera_window_frames >= 1, ">= 1"),
-        ("depth-noise", cfg.depth_noise >= 0, ">= 0"),
-        ("depth-warp", 0 <= cfg.depth_warp <= 1, "in [0, 1]"),
-        ("depth-warp-length", cfg.depth_warp_length > 0, "> 0 (a fraction of the image width)"),
-        ("flying-px", cfg.flying_px == 0 or 1 <= cfg.flying_px <= 50, "0 (off) or in [1, 50] px"),
-        ("flying-jump", cfg.flying_jump > 0, "> 0"),
-        ("frame-consistency", 0 <= cfg.frame_consistency <= 1, "in [0, 1]"),
-        ("outlier-fraction", 0 <= cfg.outlier_fraction < 1, "in [0, 1)"),
-        ("outlier-blob-px", cfg.outlier_blob_px > 0, "> 0"),
-        ("outlier-magnitude", cfg.outlier_magnitude >= 0, ">= 0"),
-        ("confidence-scale", cfg.confidence_scale > 0, "> 0"),
-        ("confidence-jitter", cfg.confidence_jitter >= 0, ">= 0"),
-        ("outlier-confidence", 0 <= cfg.outlier_confidence <= 1, "in [0, 1]"),
+        ("gauge_scale_ratio", 1 <= cfg.gauge_scale_ratio <= 10, "in [1, 10] (1: no scale gauge)"),
+        ("camera_rotation_deg", 0 <= cfg.camera_rotation_deg <= 30, "in [0, 30] degrees"),
+        ("camera_translation", 0 <= cfg.camera_translation <= 1, "in [0, 1] (a fraction of the mean point distance)"),
+        ("focal_error", 0 <= cfg.focal_error <= 0.5, "in [0, 0.5]"),
+        ("camera_window_frames", cfg.camera_window_frames >= 1, ">= 1"),
+        ("depth_noise", cfg.depth_noise >= 0, ">= 0"),
+        ("depth_warp", 0 <= cfg.depth_warp <= 1, "in [0, 1]"),
+        ("depth_warp_length", cfg.depth_warp_length > 0, "> 0 (a fraction of the image width)"),
+        ("flying_px", cfg.flying_px == 0 or 1 <= cfg.flying_px <= 50, "0 (off) or in [1, 50] px"),
+        ("flying_jump", cfg.flying_jump > 0, "> 0"),
+        ("frame_consistency", 0 <= cfg.frame_consistency <= 1, "in [0, 1]"),
+        ("outlier_fraction", 0 <= cfg.outlier_fraction < 1, "in [0, 1)"),
+        ("outlier_blob_px", cfg.outlier_blob_px > 0, "> 0"),
+        ("outlier_magnitude", cfg.outlier_magnitude >= 0, ">= 0"),
+        ("confidence_scale", cfg.confidence_scale > 0, "> 0"),
+        ("confidence_jitter", cfg.confidence_jitter >= 0, ">= 0"),
+        ("outlier_confidence", 0 <= cfg.outlier_confidence <= 1, "in [0, 1]"),
         ("seed", cfg.seed >= 0, ">= 0"),
     ]
-    for flag, ok, allowed in checks:
-        value = getattr(cfg, flag.replace("-", "_"))
-        if not (ok and np.isfinite(value)):
-            raise UserError(f"--sim-{flag} must be {allowed}, got {value}")
+    for name, ok, allowed in checks:
+        cfg._require(name, bool(ok and np.isfinite(getattr(cfg, name))), allowed)
