@@ -61,8 +61,10 @@ def run(world: Path, profile: str, size: int, loops: bool, seed: int) -> dict:
         message = " ".join(str(exc).split())
         return {"ate": None, "error": f"{type(exc).__name__} in {failing_step(exc)}: {message[:160]}",
                 "seconds": time.perf_counter() - start}
-    return {"ate": ate, "error": None, "loops": result.stats["loops"], "fallbacks": result.stats["fallbacks"],
-            "submaps": result.stats["submaps"], "seconds": time.perf_counter() - start}
+    stats = result.stats
+    return {"ate": ate, "error": None, "loops": stats["loops"], "loops_rejected": stats.get("loops_rejected", 0),
+            "fallbacks": stats["fallbacks"], "segments": stats.get("segments", 1), "submaps": stats["submaps"],
+            "seconds": time.perf_counter() - start}
 
 
 def summary_row(size: int, loops: bool, runs: list[dict]) -> str:
@@ -71,9 +73,12 @@ def summary_row(size: int, loops: bool, runs: list[dict]) -> str:
     ok = [r for r in runs if r["ate"] is not None]
     median = f"{np.median(ates):.3f}" if ates else "-"
     spread = f"{ates[0]:.3f}-{ates[-1]:.3f}" if ates else "-"
-    mean = (lambda key: f"{np.mean([r[key] for r in ok]):.1f}" if ok else "-")
+    def mean(key: str) -> str:
+        return f"{np.mean([r[key] for r in ok]):.1f}" if ok else "-"
+
     return (f"| {size} | {'on' if loops else 'off'} | {median} | {spread} | {failed} / {len(runs)} | {mean('submaps')} | "
-            f"{mean('loops')} | {mean('fallbacks')} | {np.mean([r['seconds'] for r in runs]):.0f} | {PAPER_ATE[size]:.3f} |")
+            f"{mean('loops')} | {mean('loops_rejected')} | {mean('fallbacks')} | {mean('segments')} | "
+            f"{np.mean([r['seconds'] for r in runs]):.0f} | {PAPER_ATE[size]:.3f} |")
 
 
 def main() -> None:
@@ -97,7 +102,9 @@ def main() -> None:
                 outcome = run(world, args.profile, size, loops, seed)
                 runs.append(outcome)
                 ate = f"{outcome['ate']:.4f}" if outcome["ate"] is not None else "failed"
-                line = f"| {size} | {'on' if loops else 'off'} | {seed} | {ate} | {outcome['error'] or ''} |"
+                details = (f"{outcome['loops']} / {outcome['loops_rejected']} / {outcome['fallbacks']} / {outcome['segments']}"
+                           if outcome["ate"] is not None else "")
+                line = f"| {size} | {'on' if loops else 'off'} | {seed} | {ate} | {details} | {outcome['error'] or ''} |"
                 per_run.append(line)
                 print(line, flush=True)
             table[(size, loops)] = runs
@@ -133,8 +140,9 @@ def main() -> None:
         f"keyframes in metres; median and range over {args.seeds} simulator seeds, failed runs left out of both. "
         "Paper: VGGT-SLAM on TUM RGB-D (a desk-sized scene, so compare the shape of the curve, not the metres).",
         "",
-        "| submap size | loops | ATE median | range | failed | submaps | loops closed | fallbacks | seconds | paper ATE (TUM) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| submap size | loops | ATE median | range | failed | submaps | loops closed | loops rejected | fallbacks "
+        "| map segments | seconds | paper ATE (TUM) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
         *[summary_row(size, loops, table[(size, loops)]) for loops in (False, True) for size in SIZES],
         "",
         f"ATE relative to submap size {SIZES[0]} (ours: median; paper: 0.115 / 0.083 / 0.053 m). Verdict: {verdict}.",
@@ -145,8 +153,8 @@ def main() -> None:
         "",
         "Every run:",
         "",
-        "| submap size | loops | seed | ATE | error (step: message) |",
-        "|---|---|---|---|---|",
+        "| submap size | loops | seed | ATE | loops closed / rejected / fallbacks / segments | error (step: message) |",
+        "|---|---|---|---|---|---|",
         *per_run,
         "",
     ]
