@@ -363,10 +363,6 @@ class RetrievalConfig(Section):
         self._require("orb_max_image_side", self.orb_max_image_side >= 64, "at least 64 px")
 
 
-SIM_PROFILES = ("exact", "vggt", "hard")
-"""Error profiles of the simulated frontend (:data:`SIM_PROFILE_VALUES` holds their settings)."""
-
-
 @dataclass
 class LoopConfig(Section):
     """Which retrieved loops reach the graph (``sl4slam.loops``): one false loop bends the whole map."""
@@ -413,6 +409,10 @@ class LoopConfig(Section):
         self._require("min_consistent", 0 <= self.min_consistent <= 1, "in [0, 1]")
         self._require("min_correlation", -1 <= self.min_correlation <= 1, "in [-1, 1]")
         self._require("consistency_quantile", 0 < self.consistency_quantile < 1, "in (0, 1)")
+
+
+SIM_PROFILES = ("exact", "vggt", "hard")
+"""Error profiles of the simulated frontend (:data:`SIM_PROFILE_VALUES` holds their settings)."""
 
 
 @dataclass
@@ -489,8 +489,8 @@ class SimulatorConfig(Section):
     with the low confidence of outliers (``outlier_confidence``), as a regression head blurs
     depth edges. 0: none."""
     flying_jump: float = 0.1
-    """Relative depth jump (local background / foreground - 1 within ``flying_px``) that counts as
-    a depth discontinuity for ``flying_px``."""
+    """Relative depth jump between two adjacent pixels (larger / smaller - 1) that makes a depth
+    discontinuity for ``flying_px``; smooth surfaces, even at grazing angles, stay below it."""
     outlier_fraction: float = 0.02
     """Fraction of each frame's pixels inside outlier blobs (spatially coherent errors)."""
     outlier_blob_px: float = 12.0
