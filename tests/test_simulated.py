@@ -346,10 +346,14 @@ def _rotation_angles_deg(R: np.ndarray) -> np.ndarray:
     return np.degrees(Rotation.from_matrix(R).magnitude())
 
 
+def _one_term(frames: list[Frame], submap_id: int, **term):
+    """Prediction with only ``term`` switched on (metric units, no other corruption)."""
+    return SimulatedFrontend(dataclasses.replace(ZERO_CORRUPTION, **term)).reconstruct(frames, submap_id)
+
+
 def test_camera_error_moves_cameras_but_keeps_each_frames_own_depth():
     frames = make_frames(4)
-    config = dataclasses.replace(ZERO_CORRUPTION, camera_rotation_deg=2.0, camera_translation=0.02, seed=4)
-    prediction = SimulatedFrontend(config).reconstruct(frames, submap_id=3)
+    prediction = _one_term(frames, 3, camera_rotation_deg=2.0, camera_translation=0.02, seed=4)
     X_true, T_cam_ref = true_points(frames)
     T_pred = to_4x4(prediction.T_cam_submap)
 
@@ -397,8 +401,7 @@ def test_camera_error_has_the_configured_spread_and_grows_past_the_window_length
 
 def test_focal_error_scales_the_focal_lengths_about_the_principal_point():
     frames = make_frames(4)
-    config = dataclasses.replace(ZERO_CORRUPTION, focal_error=0.05, seed=2)
-    prediction = SimulatedFrontend(config).reconstruct(frames, submap_id=1)
+    prediction = _one_term(frames, 1, focal_error=0.05, seed=2)
     K_true = np.stack([f.K for f in frames])
     X_true, T_cam_ref = true_points(frames)
 
@@ -438,8 +441,7 @@ def test_frame_consistency_shares_a_frames_focal_error_and_warp_across_submaps()
 
 def test_depth_warp_is_smooth_and_not_projective():
     frames = make_frames(3)
-    config = dataclasses.replace(ZERO_CORRUPTION, depth_warp=0.05, seed=6)
-    prediction = SimulatedFrontend(config).reconstruct(frames, submap_id=0)
+    prediction = _one_term(frames, 0, depth_warp=0.05, seed=6)
     truth = np.stack([f.depth for f in frames])
     X_true, T_cam_ref = true_points(frames)
     np.testing.assert_allclose(prediction.T_cam_submap, T_cam_ref[:, :3, :], atol=1e-9)
