@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from . import __version__
-from .config import SLAMConfig, load_config
+from .config import SLAMConfig, config_from_dict, read_config_file
 from .config import sections as sections_of
 from .errors import UserError
 
@@ -91,8 +91,16 @@ def add_config_flags(parser: argparse.ArgumentParser, config: Any = None) -> Non
 
 
 def config_from_args(args: argparse.Namespace) -> SLAMConfig:
-    """Defaults, then ``--config FILE``, then explicit flags."""
-    config = load_config(args.config) if getattr(args, "config", None) else SLAMConfig()
+    """Defaults, then ``--config FILE``, then explicit flags.
+
+    ``--sim-profile`` replaces the file's ``[sim] profile`` and, like it, is applied before every
+    explicit simulator setting (the file's and the flags'), whatever their order.
+    """
+    values = read_config_file(args.config) if getattr(args, "config", None) else {}
+    profile = vars(args).get("sim.profile")
+    if profile is not None and isinstance(values.get("sim", {}), dict):
+        values = {**values, "sim": {**values.get("sim", {}), "profile": profile}}
+    config = config_from_dict(values, SLAMConfig())
     for dest, value in vars(args).items():
         if "." in dest:
             section, name = dest.split(".", 1)

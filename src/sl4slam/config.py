@@ -414,18 +414,31 @@ class LoopConfig(Section):
         self._require("consistency_quantile", 0 < self.consistency_quantile < 1, "in (0, 1)")
 
 
+SIM_PROFILES = ("exact", "vggt", "hard")
+"""Error profiles of the simulated frontend (:data:`SIM_PROFILE_VALUES` holds their settings)."""
+
+
 @dataclass
 class SimulatorConfig(Section):
     """Corruption model of the simulated frontend (``sl4slam.frontend.simulated`` documents it in full).
 
-    Every submap gets its own projective distortion ``H_s`` in SL(4); every frame of every submap
-    gets its own depth noise, outlier blobs and confidence. All of it is drawn from ``seed``, the
-    submap id and the frame indices, so a run is exactly reproducible.
+    Every submap gets its own projective distortion ``H_s`` in SL(4) and scale gauge; every frame of
+    every submap gets its own camera and focal error, depth noise, smooth depth warp, flying pixels at
+    depth edges, outlier blobs and confidence. All of it is drawn from ``seed``, the submap id and the
+    frame indices, so a run is exactly reproducible. ``profile`` sets the defaults of all error
+    magnitudes at once (``SimulatorConfig.from_profile``, ``--sim-profile``, ``[sim] profile``);
+    explicit settings override it.
     """
 
     section: ClassVar[str] = "sim"
     flag_prefix: ClassVar[str] = "sim-"
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {"profile": SIM_PROFILES}
 
+    profile: str = "exact"
+    """Error profile the settings started from: "exact" (each setting's own default: one exact SL(4)
+    transform per submap, cameras exact, small depth noise), "vggt" (calibrated to published VGGT
+    figures, cited in ``sl4slam.frontend.simulated``) or "hard" (the upper ends of those ranges, more
+    flying pixels and outliers). Applied before any explicit setting; recorded in summary.json."""
     perspective: float = 0.0
     """Norm of the perspective row ``p`` of ``H_s`` (what Sim(3) cannot model), in units of
     1 / (the submap's mean point distance): a point at the mean distance has its homogeneous
@@ -435,12 +448,52 @@ class SimulatorConfig(Section):
     off-diagonal entries ~ N(0, shear^2), log stretches ~ N(0, shear^2) minus their mean. 0: none."""
     scale: float = 0.0
     """Standard deviation of the log of the per-submap global scale of ``H_s``. 0: none."""
+    gauge_scale_ratio: float = 1.0
+    """Scale gauge of each submap: its points and camera centres are multiplied by a factor drawn
+    log-uniformly in [r^-1/2, r^1/2], so one window's scale relative to any other is within
+    [1/r, r] (VGGT: ratios of 0.5 to 2 between consecutive windows are seen in practice, r = 2).
+    Rotation and translation of a Sim(3) gauge are fixed by the first camera being [I | 0]. 1: none."""
     normalize_scale: bool = True
     """Scale each submap so the mean distance of its valid true points to the first camera is 1,
     as VGGT normalizes its outputs; off: submaps keep metric units (before ``scale``)."""
+    camera_rotation_deg: float = 0.0
+    """Per-frame camera rotation error inside a submap (all frames but the first, which stays
+    [I | 0] as VGGT's does): std in degrees of each component of a rotation vector about the
+    camera centre. A pair of frames then disagrees by about 2.2x this in median (VGGT on indoor
+    video: 1-3 degrees median relative rotation error, Depth Anything 3's table). 0: none."""
+    camera_translation: float = 0.0
+    """Per-frame camera centre error (all frames but the first): std of each coordinate as a
+    fraction of the submap's mean true point distance. 0: none."""
+    focal_error: float = 0.0
+    """Per-frame focal error: fx and fy are multiplied by ``exp(focal_error * n)``, n ~ N(0, 1),
+    about the principal point, which stays where it is (VGGT assumes the image centre; its focal
+    length is off by up to about 7 %). 0: none."""
+    camera_window_frames: int = 100
+    """Window length (frames) beyond which the camera rotation, translation and focal errors grow
+    in proportion to the length (VGGT's quality falls as windows grow past about 100 frames)."""
     depth_noise: float = 0.002
     """Relative depth noise sigma: depth is multiplied by ``exp(depth_noise * n)``, n ~ N(0, 1)
     per pixel, so the error grows with depth."""
+    depth_warp: float = 0.0
+    """Smooth non-projective depth error per frame: depth is multiplied by ``exp(depth_warp * f)``
+    with ``f`` a zero-mean, unit-variance smooth random field (VGGT's depth errors are mostly
+    low-frequency; AbsRel 2-4 % indoors). 0: none."""
+    depth_warp_length: float = 0.3
+    """Correlation length of the depth warp field as a fraction of the image width."""
+    frame_consistency: float = 0.0
+    """Share of the variance of a frame's focal error and depth warp that belongs to the frame
+    itself, the same in every submap that contains it; the rest is drawn per submap. VGGT's depth
+    and focal length come mostly from the image itself, so two windows sharing a frame predict it
+    alike (the paper's RANSAC inlier threshold, 1 % of the scene scale between the shared frame's
+    two predictions, presumes so). 0: independent per submap."""
+    flying_px: float = 0.0
+    """Flying pixels: within this many px of a depth discontinuity, the depth is interpolated
+    between the local foreground and background (a random mix per pixel, smooth over the band),
+    with the low confidence of outliers (``outlier_confidence``), as a regression head blurs
+    depth edges. 0: none."""
+    flying_jump: float = 0.1
+    """Relative depth jump between two adjacent pixels (larger / smaller - 1) that makes a depth
+    discontinuity for ``flying_px``; smooth surfaces, even at grazing angles, stay below it."""
     outlier_fraction: float = 0.02
     """Fraction of each frame's pixels inside outlier blobs (spatially coherent errors)."""
     outlier_blob_px: float = 12.0
@@ -454,13 +507,15 @@ class SimulatorConfig(Section):
     confidence_jitter: float = 0.2
     """Log-normal spread of the confidence of clean pixels (so it is not a function of depth alone)."""
     outlier_confidence: float = 0.02
-    """Factor on the confidence excess (confidence - 1) inside outlier blobs; pixels with no
-    measured depth (filled from their nearest neighbour) get confidence exactly 1."""
+    """Factor on the confidence excess (confidence - 1) inside outlier blobs and on flying pixels;
+    pixels with no measured depth (filled from their nearest neighbour) get confidence exactly 1."""
     distort_first_submap: bool = True
-    """Distort submap 0 too. The world frame is submap 0's frame, so its distortion is inherited
-    by every backend alike; switching it off isolates the error that alignment adds."""
+    """Distort submap 0 too (``H_s`` and the scale gauge). The world frame is submap 0's frame, so
+    its distortion is inherited by every backend alike; switching it off isolates the error that
+    alignment adds."""
     seed: int = 0
-    """Seed (>= 0); ``H_s`` is drawn from (seed, submap id), noise from (seed, submap id, frame index)."""
+    """Seed (>= 0); ``H_s`` and the gauge are drawn from (seed, submap id), per-frame errors from
+    (seed, submap id, frame index)."""
     false_loop_rate: float = 0.0
     """Fraction of the retrieval's loop proposals replaced by wrong places (``sl4slam.retrieval.false_loops``),
     to measure the loop checks. 0: off."""
@@ -485,6 +540,62 @@ class SimulatorConfig(Section):
         self._require("false_loop_min_distance", self.false_loop_min_distance >= 0, ">= 0 m")
         self._require("false_loop_min_angle", 0 <= self.false_loop_min_angle <= 180, "in [0, 180] degrees")
         self._require("false_loop_max_overlap", 0 <= self.false_loop_max_overlap <= 1, "in [0, 1]")
+
+    @classmethod
+    def from_profile(cls, profile: str, **overrides: Any) -> "SimulatorConfig":
+        """Settings of ``profile`` with ``overrides`` on top (the Python form of ``--sim-profile``)."""
+        config = cls()
+        apply_sim_profile(config, profile)
+        for key, value in overrides.items():
+            if key not in {f.name for f in dataclasses.fields(cls)} or key == "profile":
+                raise UserError(f"unknown simulator setting '{key}'")
+            setattr(config, key, value)
+        return config
+
+
+# Settings a profile sets; the others (seed, normalize_scale, distort_first_submap) say how to run.
+_PROFILED = (
+    "perspective", "shear", "scale", "gauge_scale_ratio", "camera_rotation_deg", "camera_translation",
+    "focal_error", "camera_window_frames", "depth_noise", "depth_warp", "depth_warp_length",
+    "frame_consistency", "flying_px", "flying_jump", "outlier_fraction", "outlier_blob_px",
+    "outlier_magnitude", "confidence_scale", "confidence_jitter", "outlier_confidence",
+)
+
+SIM_PROFILE_VALUES: dict[str, dict[str, Any]] = {
+    # The defaults above, bit for bit.
+    "exact": {},
+    # VGGT on indoor video; each value's source is in sl4slam.frontend.simulated's docstring,
+    # the resulting statistics are measured by tests/test_sim_profile.py.
+    "vggt": dict(
+        perspective=0.02, shear=0.01, gauge_scale_ratio=2.0, camera_rotation_deg=0.75,
+        camera_translation=0.003, focal_error=0.03, depth_noise=0.005, depth_warp=0.025, frame_consistency=0.8,
+        flying_px=1.5, outlier_fraction=0.02, outlier_magnitude=0.3,
+    ),
+    # The upper ends of the published ranges, more flying pixels and outliers.
+    "hard": dict(
+        perspective=0.05, shear=0.03, gauge_scale_ratio=2.0, camera_rotation_deg=1.3,
+        camera_translation=0.006, focal_error=0.05, depth_noise=0.01, depth_warp=0.04, frame_consistency=0.6,
+        flying_px=3.0, outlier_fraction=0.05, outlier_magnitude=0.5,
+    ),
+}
+"""Settings of each profile that differ from the defaults (``exact`` is the defaults)."""
+
+
+def apply_sim_profile(sim: SimulatorConfig, profile: str) -> SimulatorConfig:
+    """Set every error magnitude of ``sim`` to ``profile``'s value (in place; returns ``sim``).
+
+    Settings the profile does not name get their default, so applying a profile undoes any earlier
+    setting: apply it first, then explicit settings. ``seed``, ``normalize_scale`` and
+    ``distort_first_submap`` are left alone.
+    """
+    if not isinstance(profile, str) or profile not in SIM_PROFILES:
+        raise UserError(f"unknown simulator profile {profile!r} (--sim-profile / [sim] profile); use one of "
+                        f"{', '.join(SIM_PROFILES)}")
+    defaults = SimulatorConfig()
+    for name in _PROFILED:
+        setattr(sim, name, SIM_PROFILE_VALUES[profile].get(name, getattr(defaults, name)))
+    sim.profile = profile
+    return sim
 
 
 @dataclass
@@ -706,14 +817,26 @@ def _apply(target: Any, values: dict, where: str) -> None:
 
 
 def config_from_dict(values: dict, base: SLAMConfig | None = None) -> SLAMConfig:
-    """Overlay ``values`` (nested dict) on ``base`` (default: the defaults)."""
+    """Overlay ``values`` (nested dict) on ``base`` (default: the defaults).
+
+    A ``profile`` key of the ``sim`` table is applied before the table's other keys, whatever
+    their order, so explicit simulator settings override the profile's.
+    """
     config = base if base is not None else SLAMConfig()
+    sim_values = values.get("sim")
+    if isinstance(sim_values, dict) and "profile" in sim_values:
+        apply_sim_profile(config.sim, sim_values["profile"])
     _apply(config, values, "")
     return config
 
 
 def load_config(path: str | Path, base: SLAMConfig | None = None) -> SLAMConfig:
     """Read a TOML (``.toml``) or JSON file of settings over the defaults."""
+    return config_from_dict(read_config_file(path), base)
+
+
+def read_config_file(path: str | Path) -> dict:
+    """The nested dict of settings in a TOML (``.toml``) or JSON file."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"config file not found: {path}")
@@ -728,4 +851,6 @@ def load_config(path: str | Path, base: SLAMConfig | None = None) -> SLAMConfig:
             values = json.loads(path.read_text())
     except (ValueError, UnicodeDecodeError) as exc:
         raise UserError(f"cannot parse config file {path}: {exc}") from None
-    return config_from_dict(values, base)
+    if not isinstance(values, dict):
+        raise UserError(f"config file {path} must hold a table/object of settings")
+    return values
