@@ -246,3 +246,11 @@ def load_result(path: str | Path, keyframes: bool = True) -> RunResult:
     if (path / "trajectory_all.txt").is_file():
         result.all_frames = read_tum_trajectory(path / "trajectory_all.txt")
     return result
+
+
+def keyframe_colors(keyframe) -> np.ndarray:
+    """``(H, W, 3)`` uint8 grid colours of an in-memory stored keyframe (``StoredKeyframe``).
+
+    The viewer and the all-frame localization read keyframe colours only through this function.
+    """
+    return keyframe.colors

@@ -28,16 +28,11 @@ from typing import TextIO
 
 import numpy as np
 
-from ..results import GraphEdge, loop_segments
+from ..results import GraphEdge, keyframe_colors, loop_segments
 from .result import summary_markdown
 from .scene import MapState, SubmapCloud, ViewerSettings, gt_in_estimate_frame, make_cloud, scene_extent, thumbnail
 
 PROBE_POINTS = 64
-
-
-def keyframe_colors(keyframe) -> np.ndarray:
-    """``(H, W, 3)`` uint8 colours of a stored keyframe (the one place the viewer reads them)."""
-    return keyframe.colors
 
 
 def keyframe_confidence(keyframe) -> np.ndarray | None:
