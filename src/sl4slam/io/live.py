@@ -6,8 +6,9 @@ consumer falls behind, the frame waiting in the slot is replaced by the newer on
 ``dropped``: nothing queues up, so latency and memory stay bounded. A video file can be played
 the same way at its own frame rate (``realtime=True``), which is how the behaviour is tested.
 
-Length: unknown up front. ``len()`` is an upper bound (``max_frames``, or ``sys.maxsize``), and
-``live = True`` tells a consumer not to trust it; iteration ends when the stream ends, after
+Length: unknown up front. ``len()`` is an upper bound (``max_frames``, or ``sys.maxsize``) so that
+a consumer written for finite sources runs unchanged, and ``live = True`` tells a consumer not to
+trust it (iterate; ``list(source)`` would try to size itself by it); iteration ends when the stream ends, after
 ``max_frames`` frames, or on Ctrl-C (the first Ctrl-C during iteration ends it cleanly so the run
 can write its outputs; a second one interrupts as usual).
 
