@@ -314,3 +314,81 @@ def test_view_in_a_real_browser(tmp_path: Path) -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
     assert proc.returncode in (0, 130), proc.stderr.read()
+
+
+def test_live_viewer_follows_a_real_run(tmp_path: Path) -> None:
+    """The pipeline's callback feeds a real viser server; the final scene is the polished result."""
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    import io
+
+    from result_folders import small_world_config
+    from sl4slam.frontend import make_frontend
+    from sl4slam.io import open_source
+    from sl4slam.pipeline import SLAMPipeline
+    from sl4slam.synthetic import write_synthetic_sequence
+    from sl4slam.viewer import LiveViewer
+
+    world = write_synthetic_sequence(tmp_path / "w", num_frames=60, width=96, height=72, seed=0)
+    config = small_world_config()
+    viewer = LiveViewer(ViewerSettings(port=_free_port(), point_budget=50_000), stream=io.StringIO())
+    calls = []
+    try:
+        pipeline = SLAMPipeline(config, make_frontend(config),
+                                on_submap=lambda p, s: (calls.append(s), viewer.on_submap(p, s)))
+        result = pipeline.run(open_source(str(world)), progress=False)
+        viewer.finish(result, {"counts": result.stats, "ate": {"rmse": 0.01, "poses": len(result.keyframes)}})
+        state = viewer.state
+        assert calls == list(range(result.stats["submaps"])) and viewer.updates >= 2 and viewer.error is None
+        assert sorted(state.clouds) == sorted(result.H_world_submap)
+        assert 0 < state.total_points() <= 50_000
+        np.testing.assert_allclose(state.T_world_cam, result.T_world_cam)
+        assert state.gt_positions is not None and len(state.gt_positions) == len(result.keyframes)
+        assert "ATE RMSE 0.0100" in viewer.viewer.gui_summary.content
+        # every cloud sits where the polished graph puts its submap (redrawn after the final polish)
+        for submap_id, cloud in state.clouds.items():
+            expected = _world_points([k for k in result.keyframes if k.submap_id == submap_id], submap_id,
+                                     result.H_world_submap[submap_id])
+            centre = expected.mean(0)
+            assert np.linalg.norm(cloud.offsets.mean(0) + cloud.centre - centre) < 0.02 * np.ptp(expected, axis=0).max()
+    finally:
+        viewer.close()
+
+
+@pytest.mark.slow
+def test_run_with_view_in_a_real_browser(tmp_path: Path) -> None:
+    """`sl4slam run --view`: the page shows the map while and after the run; Ctrl-C closes it."""
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+    from sl4slam.synthetic import write_synthetic_sequence
+
+    world = write_synthetic_sequence(tmp_path / "w", num_frames=120, width=96, height=72, seed=0)
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "sl4slam.cli", "run", str(world), "--out", str(tmp_path / "o"),
+                             "--frontend", "simulated", "--tau-disparity", "7.5", "--submap-size", "8", "--retrieval",
+                             "none", "--view", "--port", str(port), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = _wait_for_line(proc, "viewer at").split()[-1]
+        _wait_for_line(proc, "viewer stays open", timeout=300)
+        assert (tmp_path / "o" / "summary.json").is_file()
+        with sync_api.sync_playwright() as playwright:
+            browser = _browser(playwright, tmp_path / "profile")
+            page = browser.new_page()
+            page.goto(url)
+            page.wait_for_selector("canvas", timeout=60000)
+            fraction = 0.0
+            for _ in range(30):
+                fraction = _non_background_fraction(page.screenshot())
+                if fraction > 0.02:
+                    break
+                time.sleep(1.0)
+            assert fraction > 0.02
+            assert "ATE RMSE" in page.content()
+            browser.close()
+    finally:
+        proc.send_signal(2)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    assert proc.returncode == 0, proc.stderr.read()
