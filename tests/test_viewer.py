@@ -264,6 +264,27 @@ def _non_background_fraction(png: bytes, right_margin: int = 340) -> float:
     return float((np.abs(canvas.astype(int) - 255).sum(axis=2) > 60).mean())
 
 
+def _wait_until_drawn(page, attempts: int = 30) -> float:
+    """Screenshots until the clouds have arrived and been drawn; the drawn fraction of the canvas."""
+    fraction = 0.0
+    for _ in range(attempts):
+        fraction = _non_background_fraction(page.screenshot())
+        if fraction > 0.02:
+            break
+        time.sleep(1.0)
+    return fraction
+
+
+def _interrupt(proc) -> None:
+    """Ctrl-C to a viewer subprocess, as a user would; killed if it does not stop."""
+    proc.send_signal(2)
+    try:
+        proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def _wait_for_line(proc, prefix: str, timeout: float = 60.0) -> str:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -297,22 +318,13 @@ def test_view_in_a_real_browser(tmp_path: Path) -> None:
                 assert page.get_by_text(label, exact=True).count() >= 1, label
             shown = page.get_by_text("points:", exact=False)
             shown.first.wait_for(timeout=30000)
-            fraction = 0.0
-            for _ in range(30):  # until the clouds have arrived and been drawn
-                fraction = _non_background_fraction(page.screenshot())
-                if fraction > 0.02:
-                    break
-                time.sleep(1.0)
+            fraction = _wait_until_drawn(page)
             (tmp_path / "view.png").write_bytes(page.screenshot())
             assert fraction > 0.02, f"the 3D view is blank ({fraction:.4f} of the canvas drawn)"
             assert "ATE RMSE" in page.content()
             browser.close()
     finally:
-        proc.send_signal(2)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        _interrupt(proc)
     assert proc.returncode in (0, 130), proc.stderr.read()
 
 
@@ -376,19 +388,25 @@ def test_run_with_view_in_a_real_browser(tmp_path: Path) -> None:
             page = browser.new_page()
             page.goto(url)
             page.wait_for_selector("canvas", timeout=60000)
-            fraction = 0.0
-            for _ in range(30):
-                fraction = _non_background_fraction(page.screenshot())
-                if fraction > 0.02:
-                    break
-                time.sleep(1.0)
-            assert fraction > 0.02
+            assert _wait_until_drawn(page) > 0.02
             assert "ATE RMSE" in page.content()
             browser.close()
     finally:
-        proc.send_signal(2)
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        _interrupt(proc)
     assert proc.returncode == 0, proc.stderr.read()
+
+
+def test_a_run_without_keyframe_files_shows_its_trajectory(tmp_path: Path) -> None:
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    import io
+
+    from sl4slam.viewer import view_result
+
+    write_known_result(tmp_path / "r", count=5, keyframes=False)
+    out = io.StringIO()
+    viewer = view_result(tmp_path / "r", ViewerSettings(port=_free_port()), block=False, stream=out)
+    try:
+        assert len(viewer.state.T_world_cam) == 5 and viewer.state.total_points() == 0
+        assert "--save-keyframe-points" in viewer.gui_summary.content
+    finally:
+        viewer.close()

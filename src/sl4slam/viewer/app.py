@@ -190,6 +190,8 @@ class MapViewer:
             self._extent = scene_extent(positions)
             scale = 0.04 * self._extent
             shown = set(evenly_spaced(len(state.T_world_cam), self.settings.max_frustums).tolist())
+            if len(state.K) != len(state.T_world_cam):  # trajectory only (no keyframe files): no frustums
+                shown = set()
             wxyz = rotation_wxyz(state.T_world_cam) if len(state.T_world_cam) else np.zeros((0, 4))
             with self.server.atomic():
                 for i, frame_index in enumerate(state.frame_indices.tolist()):
