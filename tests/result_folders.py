@@ -48,7 +48,9 @@ def write_known_result(folder: Path, count: int = 6, width: int = 48, height: in
         points = unproject_depth(depth, K[None], T_cam_world[None])[0]
         mask = rng.random((height, width)) > 0.2
         points[~mask] = 0.0
-        colors = rng.integers(0, 255, (height, width, 3), dtype=np.uint8)
+        v, u = np.mgrid[0:height, 0:width]
+        colors = np.stack([128 + 100 * np.sin(u / 7.0 + i), 128 + 100 * np.cos(v / 5.0 - i), 128 + 60 * np.sin((u + v) / 11.0)],
+                          axis=-1).astype(np.uint8)  # smooth, like a photograph (and as costly to encode)
         truth["points"][int(frame_indices[i])], truth["masks"][int(frame_indices[i])] = points, mask
         if keyframes:
             extra = {"confidence": rng.uniform(1, 10, (height, width)).astype(np.float16)} if confidence else {}

@@ -140,6 +140,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     from .export import export_result
 
     options = {} if args.format == "ply" else {"max_points": args.max_points}
+    if args.format != "ply":
+        options["image_ext"] = "." + args.image_format
     if args.format == "colmap":
         options.update(binary=True, text=args.text)
     report = export_result(args.result, args.format, args.out, **options)
@@ -222,6 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--out", help="output folder (default: RESULT/export_FORMAT)")
     export.add_argument("--max-points", type=int, default=1_000_000, help="points in the COLMAP / nerfstudio point cloud")
     export.add_argument("--text", action="store_true", help="COLMAP: also write the .txt model beside the .bin one")
+    export.add_argument("--image-format", choices=["png", "jpg"], default="png",
+                        help="keyframe images: png (lossless) or jpg (quality 95, several times faster to write)")
     export.set_defaults(func=cmd_export)
 
     demo = verbs.add_parser("demo", help="synthetic world: SL(4) versus Sim(3) under a projective distortion")
