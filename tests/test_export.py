@@ -157,3 +157,10 @@ def test_bad_result_folder_is_one_line(tmp_path: Path, make, words: str) -> None
                           capture_output=True, text=True, timeout=120)
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 2 and len(lines) == 1 and words in lines[0], proc.stderr
+
+
+@pytest.mark.parametrize("verb", ["export", "view"])
+def test_new_verbs_have_help(verb: str) -> None:
+    proc = subprocess.run([sys.executable, "-m", "sl4slam.cli", verb, "--help"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and "usage" in proc.stdout and "RESULT" not in proc.stderr
+    assert ("--format" in proc.stdout) == (verb == "export") and ("--host" in proc.stdout) == (verb == "view")
