@@ -26,6 +26,7 @@ from sl4slam.models.salad import (
 )
 from sl4slam.retrieval.salad import DescriptorIndex, SaladRetrieval
 from sl4slam.types import Retrieval
+from sl4slam.io.memory import frames_from_images as as_frames
 
 TINY_SIZES = dict(embed_dim=64, depth=2, num_heads=2, num_clusters=8, cluster_dim=16, token_dim=32)
 
@@ -340,8 +341,8 @@ def test_salad_retrieval_follows_the_query_semantics(tiny_model) -> None:
     retrieval.describe = counting_describe  # type: ignore[method-assign]
     for submap in range(4):  # submaps 0..3, three keyframes each
         frames = [3 * submap + i for i in range(3)]
-        assert retrieval.query(frames, [images[f] for f in frames], submap, 1) == [] or submap >= 3
-        retrieval.add(frames, [images[f] for f in frames], submap)
+        assert retrieval.query(as_frames(frames, [images[f] for f in frames]), submap, 1) == [] or submap >= 3
+        retrieval.add(as_frames(frames, [images[f] for f in frames]), submap)
     assert calls == [3, 3, 3, 3]  # query's descriptors are reused by add
     np.testing.assert_allclose(
         retrieval.index._vectors[:12].float().numpy(), tiny_model.describe(images, 224), atol=1e-3
@@ -349,23 +350,23 @@ def test_salad_retrieval_follows_the_query_semantics(tiny_model) -> None:
 
     # a revisit of frame 4 (submap 1) from submap 4: eligible submaps are <= 4 - 1 - 2 = 1
     revisit = [images[4].copy(), images[10].copy()]
-    found = retrieval.query([100, 101], revisit, 4, max_results=5)
+    found = retrieval.query(as_frames([100, 101], revisit), 4, max_results=5)
     assert found[0].query_frame == 100 and found[0].match_frame == 4 and found[0].match_submap == 1
     assert found[0].distance < 1e-2
     assert all(c.match_submap <= 1 and c.distance < 0.8 for c in found)
     assert [c.distance for c in found] == sorted(c.distance for c in found)
     # frame 10 sits in submap 3, excluded at submap 4, so query 101 cannot match it
     assert all(c.match_frame != 10 for c in found)
-    assert len(retrieval.query([100, 101], revisit, 4, max_results=1)) == 1
+    assert len(retrieval.query(as_frames([100, 101], revisit), 4, max_results=1)) == 1
     # from submap 6, submap 3 becomes eligible and frame 10 is found
-    later = retrieval.query([100, 101], revisit, 6, max_results=2)
+    later = retrieval.query(as_frames([100, 101], revisit), 6, max_results=2)
     assert {(c.query_frame, c.match_frame) for c in later} == {(100, 4), (101, 10)}
     # a tight threshold rejects everything but the exact revisits
     strict = SaladRetrieval(RetrievalConfig(kind="salad", tau_desc=1e-2), model=tiny_model)
     strict.index = retrieval.index
-    assert {(c.query_frame, c.match_frame) for c in strict.query([100, 101], revisit, 6, 5)} == {(100, 4), (101, 10)}
+    assert {(c.query_frame, c.match_frame) for c in strict.query(as_frames([100, 101], revisit), 6, 5)} == {(100, 4), (101, 10)}
     strict.config = RetrievalConfig(kind="salad", tau_desc=0.0)
-    assert strict.query([100, 101], revisit, 6, 5) == []
+    assert strict.query(as_frames([100, 101], revisit), 6, 5) == []
 
 
 # ----------------------------------------------------------------------------- full size (slow)
@@ -402,8 +403,8 @@ def test_salad_retrieval_end_to_end_with_random_checkpoint(tmp_path, lightning) 
     retrieval = make_retrieval(config)
     assert isinstance(retrieval, SaladRetrieval)
     images = random_images(4, seed=13)
-    retrieval.add([0, 1], images[:2], 0)
-    retrieval.add([2, 3], images[2:], 1)
-    found = retrieval.query([50], [images[1]], 2, max_results=1)
+    retrieval.add(as_frames([0, 1], images[:2]), 0)
+    retrieval.add(as_frames([2, 3], images[2:]), 1)
+    found = retrieval.query(as_frames([50], [images[1]]), 2, max_results=1)
     assert len(found) == 1 and found[0].match_frame == 1 and found[0].distance < 1e-2
     assert retrieval.index._vectors.shape[1] == 8448

@@ -172,6 +172,13 @@ class SimulatedFrontend:
             colors=np.stack([np.asarray(f.rgb, dtype=np.uint8) for f in frames]),
         )
 
+    def prepare(self) -> None:
+        """Nothing to load: the simulator needs no weights."""
+
+    def grid_colors(self, frame: Frame) -> np.ndarray:
+        """The frame's own RGB: the simulator predicts on the input grid."""
+        return np.asarray(frame.rgb, dtype=np.uint8)
+
     def distortion(self, frames: Sequence[Frame], submap_id: int) -> np.ndarray:
         """``H_submap_true`` ``(4, 4)`` in SL(4) that :meth:`reconstruct` applies to these frames.
 

@@ -69,18 +69,47 @@ def resolve_weights(weights: str, cache_dir: str | Path | None = None, local_fil
         )
     repo_id, _, filename = weights.partition(":")
     filename = filename or DEFAULT_HUB_FILENAME
-    try:
-        from huggingface_hub import hf_hub_download
+    from huggingface_hub import hf_hub_download
 
-        kwargs = {"cache_dir": str(cache_dir) if cache_dir is not None else None}
-        if local_files_only is not None:
-            kwargs["local_files_only"] = local_files_only
-        return Path(hf_hub_download(repo_id, filename, **kwargs))
-    except Exception as exc:  # offline, unknown repo, HTTP errors: all mean "not available here"
+    kwargs = {"cache_dir": str(cache_dir) if cache_dir is not None else None}
+    try:  # the cache first: no network at all
+        return Path(hf_hub_download(repo_id, filename, local_files_only=True, **kwargs))
+    except Exception:  # not cached (huggingface_hub raises its own LocalEntryNotFoundError)
+        pass
+    if local_files_only or hub_offline():
         raise MissingWeightsError(
-            f"VGGT weights {repo_id}/{filename} are not in the Hugging Face cache and could not be downloaded "
-            f"({type(exc).__name__}); {_download_hint(repo_id, filename)}"
+            f"VGGT weights {repo_id}/{filename} are not in the Hugging Face cache and downloads are off "
+            f"(HF_HUB_OFFLINE); {_download_hint(repo_id, filename)}")
+    if not hub_reachable():
+        raise MissingWeightsError(
+            f"VGGT weights {repo_id}/{filename} are not in the Hugging Face cache and huggingface.co cannot be "
+            f"reached; {_download_hint(repo_id, filename)}")
+    try:
+        return Path(hf_hub_download(repo_id, filename, **kwargs))
+    except Exception as exc:  # unknown repo, HTTP errors, interrupted transfer: all mean "not available here"
+        raise MissingWeightsError(
+            f"VGGT weights {repo_id}/{filename} could not be downloaded ({type(exc).__name__}); "
+            f"{_download_hint(repo_id, filename)}"
         ) from None
+
+
+def hub_offline() -> bool:
+    """Whether the Hugging Face hub is switched off (``HF_HUB_OFFLINE`` / ``TRANSFORMERS_OFFLINE``)."""
+    import os
+
+    return any(os.environ.get(name, "").strip().lower() in ("1", "true", "yes", "on")
+               for name in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE"))
+
+
+def hub_reachable(host: str = "huggingface.co", timeout: float = 3.0) -> bool:
+    """One TCP connection attempt to the hub (seconds at most), instead of the download's retries."""
+    import socket
+
+    try:
+        with socket.create_connection((host, 443), timeout=timeout):
+            return True
+    except OSError:
+        return False
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict | None]:
