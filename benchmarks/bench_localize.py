@@ -45,7 +45,7 @@ def measure(name: str, path: Path, tau_disparity: float, submap_size: int, retri
     pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
     result = pipeline.run(source, progress=False)
     start = time.perf_counter()
-    poses = localize_frames(source, views_from_pipeline(result.keyframes, result.H_world_submap, result.T_world_cam))
+    poses = localize_frames(source, views_from_pipeline(result))
     total = time.perf_counter() - start
     split = split_ate(poses)
     frame = source.get(0).rgb.shape

@@ -41,7 +41,7 @@ def world_run(world):
 
 
 def _views(result):
-    return views_from_pipeline(result.keyframes, result.H_world_submap, result.T_world_cam)
+    return views_from_pipeline(result)
 
 
 def test_all_frames_on_the_synthetic_world(world_run) -> None:

@@ -126,15 +126,16 @@ def _keyframes(count_per_submap: int = 2, submaps: int = 3, size=(24, 32)):
             T[:3, 3] = [0.1 * j, 0.0, 0.0]
             mask = rng.random(size) > 0.3
             keyframes.append(StoredKeyframe(frame_index=10 * s + j, timestamp=float(10 * s + j), submap_id=s, slot=j + 1,
-                                            depth=rng.uniform(1, 2, size).astype(np.float16),
-                                            colors=rng.integers(0, 255, size + (3,), dtype=np.uint8),
-                                            mask_bits=np.packbits(mask), K=K, T_cam_submap=T))
+                                            depth=rng.uniform(1, 2, size).astype(np.float16), mask_bits=np.packbits(mask),
+                                            confidence_rank=rng.integers(0, 255, (12, 16), dtype=np.uint8), K=K,
+                                            T_cam_submap=T, principal_point=K[:2, 2].copy()))
     return keyframes
 
 
 def _pipeline(keyframes, estimates, edges=()):
+    """What the live viewer reads of a running pipeline (colours are re-read through ``_colors``)."""
     return SimpleNamespace(keyframes=keyframes, backend=SimpleNamespace(estimates=lambda: estimates), edges=list(edges),
-                           num_frames=100)
+                           num_frames=100, _colors=lambda k: np.full(k.shape + (3,), k.frame_index, np.uint8))
 
 
 def _world_points(keyframes, submap_id, H):
@@ -160,6 +161,8 @@ def test_live_viewer_redraws_only_the_submaps_a_loop_closure_moved() -> None:
             expected = _world_points(keyframes, s, estimates[s])
             assert len(cloud) == len(expected)
             np.testing.assert_allclose(np.sort(cloud.offsets + cloud.centre, axis=0), np.sort(expected, axis=0), atol=1e-4)
+            assert set(np.unique(cloud.colors).tolist()) == {k.frame_index for k in keyframes if k.submap_id == s}
+            assert fake.state.has_confidence()  # the keyframes' confidence percentiles drive the slider
         # a loop closure moves submap 2 by a projective correction and leaves 0 and 1 in place
         correction = np.eye(4)
         correction[3, :3] = [0.02, -0.01, 0.03]
@@ -185,7 +188,7 @@ def viewer_snapshot(viewer, pipeline):
     from sl4slam.viewer.live import _Snapshot
 
     return _Snapshot(keyframes=list(pipeline.keyframes), estimates=dict(pipeline.backend.estimates()),
-                     edges=list(pipeline.edges), frames=pipeline.num_frames)
+                     edges=list(pipeline.edges), frames=pipeline.num_frames, colors=pipeline)
 
 
 def test_live_viewer_keeps_the_map_within_the_point_budget() -> None:

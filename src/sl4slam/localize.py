@@ -21,8 +21,8 @@ poses. From a result folder (no graph nodes saved), the keyframes' world points,
 and pose stand in for the submap frame (``H = I``): exact when the world is Euclidean, first-order
 otherwise.
 
-Frames are resampled onto the keyframes' grid (the grid ``K`` refers to) by ``to_grid``: the VGGT
-frontend's own preprocessing, or nothing when frames already have the grid's size.
+Frames are resampled onto the keyframes' grid (the grid ``K`` refers to) by ``to_grid``: the
+frontend's own ``grid_colors`` (VGGT's preprocessing; nothing for the simulator).
 """
 
 from __future__ import annotations
@@ -163,22 +163,16 @@ class _LRU:
         return value
 
 
-def views_from_pipeline(keyframes: Sequence, H_world_submap: dict[int, np.ndarray], T_world_cam: np.ndarray,
-                        colors: Callable | None = None) -> list[KeyframeView]:
-    """Keyframe views from the pipeline's stored keyframes (submap frame, exact projective world).
-
-    Args:
-        keyframes: ``StoredKeyframe`` list (``SLAMResult.keyframes``).
-        H_world_submap: graph nodes; T_world_cam: ``(N, 4, 4)`` the keyframes' reported poses.
-        colors: how to read a keyframe's grid image (default :func:`sl4slam.results.keyframe_colors`).
-    """
+def views_from_pipeline(result) -> list[KeyframeView]:
+    """Keyframe views from a run in memory (``SLAMResult``: its stored keyframes in their submap
+    frames, the graph nodes, the reported poses; exact in a projective world)."""
     from .results import keyframe_colors
 
-    read = colors or keyframe_colors
-    return [KeyframeView(frame_index=k.frame_index, timestamp=k.timestamp, image=read(k), mask=k.mask(), K=k.K,
-                         T_cam_local=to_4x4(k.T_cam_submap), H_world_local=np.asarray(H_world_submap[k.submap_id]),
-                         T_world_cam=np.asarray(T), points=k.points)
-            for k, T in zip(keyframes, T_world_cam)]
+    return [KeyframeView(frame_index=k.frame_index, timestamp=k.timestamp, image=keyframe_colors(k, result), mask=k.mask(),
+                         K=k.K, T_cam_local=to_4x4(k.T_cam_submap),
+                         H_world_local=np.asarray(result.H_world_submap[k.submap_id]), T_world_cam=np.asarray(T),
+                         points=k.points)
+            for k, T in zip(result.keyframes, result.T_world_cam)]
 
 
 def views_from_result(result) -> list[KeyframeView]:
@@ -193,30 +187,19 @@ def views_from_result(result) -> list[KeyframeView]:
     return views
 
 
-def grid_resampler(config) -> Callable[[np.ndarray], np.ndarray]:
-    """How frames reach the keyframes' grid for a run's ``SLAMConfig``: VGGT's preprocessing for
-    the VGGT frontend, none for frontends that keep the input size (the simulator)."""
-    if getattr(config, "frontend", "") != "vggt":
-        return lambda rgb: rgb
-    from .models.vggt.preprocess import preprocess_images, to_uint8_rgb
-
-    mode = config.vggt.preprocess_mode
-    return lambda rgb: to_uint8_rgb(preprocess_images([rgb], mode=mode)[0])[0]
-
-
 # ------------------------------------------------------------------------- localization
 class FrameLocalizer:
     """Localizes frames against a fixed set of keyframes (see the module docstring)."""
 
     def __init__(self, keyframes: Sequence[KeyframeView], config: LocalizationConfig | None = None,
-                 to_grid: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+                 to_grid: Callable[[Frame], np.ndarray] | None = None) -> None:
         self.config = config or LocalizationConfig()
         self.config.validate()
         if not keyframes:
             raise UserError("all-frame localization needs at least one keyframe")
         self.keyframes = sorted(keyframes, key=lambda k: k.frame_index)
         self._indices = np.array([k.frame_index for k in self.keyframes])
-        self.to_grid = to_grid or (lambda rgb: rgb)
+        self.to_grid = to_grid or (lambda frame: frame.rgb)
         self._points = _LRU(4)
         self._corners = _LRU(4)
 
@@ -241,7 +224,7 @@ class FrameLocalizer:
 
     def localize(self, frame: Frame) -> FramePose | str:
         """The frame's pose, or the reason it could not be localized."""
-        grey = cv2.cvtColor(np.ascontiguousarray(self.to_grid(frame.rgb)), cv2.COLOR_RGB2GRAY)
+        grey = cv2.cvtColor(np.ascontiguousarray(self.to_grid(frame)), cv2.COLOR_RGB2GRAY)
         reasons = []
         for position in self.candidates(frame.index):
             outcome = self._against(position, grey, frame)
@@ -303,7 +286,7 @@ class FrameLocalizer:
 
 
 def localize_frames(frames: Iterable[Frame], keyframes: Sequence[KeyframeView], config: LocalizationConfig | None = None,
-                    to_grid: Callable[[np.ndarray], np.ndarray] | None = None, progress: bool = False) -> AllFramePoses:
+                    to_grid: Callable[[Frame], np.ndarray] | None = None, progress: bool = False) -> AllFramePoses:
     """Poses of every frame of ``frames`` (keyframes keep theirs; see the module docstring)."""
     from tqdm import tqdm
 

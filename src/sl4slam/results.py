@@ -181,7 +181,8 @@ def _format_version(summary: dict, path: Path) -> int:
 
 def _edges(summary: dict, version: int) -> list[GraphEdge]:
     if version >= 2 and "edges" in summary:
-        raw = summary["edges"]
+        # edges that reached the graph; rejected loops and segment starts are reported, not drawn
+        raw = [e for e in summary["edges"] if e.get("accepted", True) and e.get("kind") in ("odometry", "loop")]
     else:
         raw = [{**loop, "kind": "loop"} for loop in summary.get("loops", [])]
     edges = []
@@ -248,9 +249,24 @@ def load_result(path: str | Path, keyframes: bool = True) -> RunResult:
     return result
 
 
-def keyframe_colors(keyframe) -> np.ndarray:
+def keyframe_colors(keyframe, owner=None) -> np.ndarray:
     """``(H, W, 3)`` uint8 grid colours of an in-memory stored keyframe (``StoredKeyframe``).
 
     The viewer and the all-frame localization read keyframe colours only through this function.
+    ``owner`` is what can re-read them: a ``SLAMResult`` (its ``keyframe_colors``) or a running
+    ``SLAMPipeline`` (which re-reads the frame from its source onto the grid). Mid-grey when
+    nothing can.
     """
-    return keyframe.colors
+    stored = getattr(keyframe, "colors", None)
+    if stored is not None:
+        return stored
+    if hasattr(owner, "keyframe_colors"):
+        return owner.keyframe_colors(keyframe)
+    if hasattr(owner, "_colors"):
+        from .errors import UserError as _UserError
+
+        try:
+            return owner._colors(keyframe)
+        except _UserError:
+            pass
+    return np.full(tuple(keyframe.shape) + (3,), 128, dtype=np.uint8)

@@ -165,7 +165,7 @@ def _run(source, live: bool, out: Path, config: SLAMConfig, replay_dir, progress
     summary = write_outputs(result, out, config, source_name=source.name, skipped=source.skipped, status=status,
                             extra=extra or None)
     if all_frames and status == "complete":
-        summary["all_frames"] = _localize_all_frames(source, result, config, out, progress)
+        summary["all_frames"] = _localize_all_frames(source, result, frontend, out, progress)
         atomic_write_bytes(out / "summary.json", json.dumps(summary, indent=2).encode())
     print_summary(summary, out, stream=sys.stdout)
     if viewer is not None:
@@ -188,13 +188,12 @@ def _live_status(source):
     return on_submap
 
 
-def _localize_all_frames(source, result, config: SLAMConfig, out_dir: Path, progress: bool) -> dict:
+def _localize_all_frames(source, result, frontend, out_dir: Path, progress: bool) -> dict:
     """Poses of every frame into ``trajectory_all.txt``; returns the summary entry."""
     from .io import write_tum_trajectory
-    from .localize import grid_resampler, localize_frames, split_ate, views_from_pipeline
+    from .localize import localize_frames, split_ate, views_from_pipeline
 
-    views = views_from_pipeline(result.keyframes, result.H_world_submap, result.T_world_cam, colors=result.keyframe_colors)
-    poses = localize_frames(source, views, to_grid=grid_resampler(config), progress=progress)
+    poses = localize_frames(source, views_from_pipeline(result), to_grid=frontend.grid_colors, progress=progress)
     write_tum_trajectory(out_dir / "trajectory_all.txt", poses.timestamps, poses.T_world_cam)
     entry = poses.summary()
     if poses.T_world_cam_gt is not None and len(poses.timestamps) >= 3:

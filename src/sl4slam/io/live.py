@@ -83,6 +83,7 @@ class LiveSource:
     """
 
     live = True
+    has_ground_truth = False
 
     def __init__(self, spec: str | int | Path, max_frames: int = 0, realtime: bool = False,
                  open_timeout: float = OPEN_TIMEOUT_S, spool_dir: str | Path | None = None,
@@ -107,6 +108,7 @@ class LiveSource:
         self.spool_dir = Path(tempfile.mkdtemp(prefix="sl4slam_live_")) if spool_dir is None else Path(spool_dir)
         self.spool_dir.mkdir(parents=True, exist_ok=True)
         self._kept: dict[int, tuple[Path, float]] = {}
+        self._last: Frame | None = None  # the frame handed out last (kept or not yet decided)
         self._capture, first = self._open(open_timeout)
         fps = self._capture.get(cv2.CAP_PROP_FPS)
         self.fps = float(fps) if fps and np.isfinite(fps) and 0 < fps < 1000 else 30.0
@@ -234,6 +236,7 @@ class LiveSource:
                         self._keep(frame)
                         seen += 1
                 self.delivered += 1
+                self._last = frame
                 yield frame
                 if self.keyframe_counter is not None:
                     # the consumer has decided on the frame it just received
@@ -258,7 +261,10 @@ class LiveSource:
         return sorted(self._kept)
 
     def get(self, index: int) -> Frame:
-        """A kept frame by ``Frame.index`` (bit-identical to the one delivered)."""
+        """A kept frame (or the frame handed out last) by ``Frame.index``, bit-identical to the one delivered."""
+        last = self._last
+        if last is not None and last.index == int(index):
+            return last
         if int(index) not in self._kept:
             raise UserError(f"frame {index} of live source {self.name} was not kept (only keyframes are); "
                             "a live source cannot re-read other frames")

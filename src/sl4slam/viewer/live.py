@@ -36,7 +36,10 @@ PROBE_POINTS = 64
 
 
 def keyframe_confidence(keyframe) -> np.ndarray | None:
-    """``(H, W)`` float32 per-pixel confidence of a stored keyframe, ``None`` when it keeps only a mask."""
+    """``(H, W)`` float32 per-pixel confidence of a stored keyframe (its percentile in its submap),
+    ``None`` when it keeps only a mask."""
+    if hasattr(keyframe, "confidence_percentile"):
+        return np.asarray(keyframe.confidence_percentile(), np.float32)
     confidence = getattr(keyframe, "confidence", None)
     return None if confidence is None else np.asarray(confidence, np.float32)
 
@@ -58,6 +61,7 @@ class _Snapshot:
     estimates: dict[int, np.ndarray]
     edges: list
     frames: int
+    colors: object = None  # what re-reads keyframe colours (see sl4slam.results.keyframe_colors)
     T_world_cam: np.ndarray | None = None  # final poses and intrinsics (from the result) when known
     K: np.ndarray | None = None
     gt: np.ndarray | None = None
@@ -100,7 +104,7 @@ class LiveViewer:
         """The pipeline's per-submap callback: snapshot and return at once."""
         snapshot = _Snapshot(keyframes=list(pipeline.keyframes),
                              estimates={k: np.array(v, np.float64) for k, v in pipeline.backend.estimates().items()},
-                             edges=list(pipeline.edges), frames=int(getattr(pipeline, "num_frames", 0)))
+                             edges=list(pipeline.edges), frames=int(getattr(pipeline, "num_frames", 0)), colors=pipeline)
         self._submit(snapshot)
 
     __call__ = on_submap
@@ -109,7 +113,8 @@ class LiveViewer:
         """Draw the final (polished) result, with ground truth and the run summary; wait until drawn."""
         snapshot = _Snapshot(keyframes=list(result.keyframes), estimates=dict(result.H_world_submap),
                              edges=list(result.edges), frames=int(result.stats.get("frames", 0)),
-                             T_world_cam=result.T_world_cam, K=result.K, gt=result.T_world_cam_gt, summary=summary)
+                             T_world_cam=result.T_world_cam, K=result.K, gt=result.T_world_cam_gt, summary=summary,
+                             colors=result)
         self._submit(snapshot)
         self.wait(timeout)
 
@@ -166,7 +171,7 @@ class LiveViewer:
             new = [s for s in sorted(by_submap) if s not in state.clouds]
             moved = [s for s in state.clouds if s in snap.estimates and self._moved(s, snap.estimates[s], extent)]
             for s in new:
-                state.clouds[s] = self._build_cloud(s, by_submap[s], snap.estimates[s])
+                state.clouds[s] = self._build_cloud(s, by_submap[s], snap.estimates[s], snap.colors)
                 self._drawn_H[s] = snap.estimates[s]
             for s in moved:
                 self._move_cloud(state.clouds[s], snap.estimates[s] @ np.linalg.inv(self._drawn_H[s]))
@@ -175,13 +180,14 @@ class LiveViewer:
             state.frame_indices = np.array([k.frame_index for k in keyframes], dtype=np.int64)
             state.submap_ids = np.array([k.submap_id for k in keyframes], dtype=np.int64)
             state.T_world_cam, state.K = T_world_cam, K
-            state.image_sizes = np.array([keyframe_colors(k).shape[1::-1] for k in keyframes], dtype=np.int64).reshape(-1, 2)
+            state.image_sizes = np.array([tuple(k.shape)[::-1] for k in keyframes], dtype=np.int64).reshape(-1, 2)
             fresh = [k for k in keyframes if k.frame_index not in self._thumbs_done]
             for keyframe in fresh:
-                state.thumbnails[keyframe.frame_index] = thumbnail(keyframe_colors(keyframe), self.settings.thumbnail_width)
+                state.thumbnails[keyframe.frame_index] = thumbnail(keyframe_colors(keyframe, snap.colors),
+                                                                   self.settings.thumbnail_width)
                 self._thumbs_done.add(keyframe.frame_index)
             loops = [GraphEdge("loop", (e.submap_from, e.submap_to), e.frame_index, getattr(e, "query_frame", None))
-                     for e in snap.edges if e.kind == "loop"]
+                     for e in snap.edges if e.kind == "loop" and getattr(e, "accepted", True)]
             state.loop_segments = loop_segments(state.frame_indices, state.submap_ids, T_world_cam[:, :3, 3], loops) \
                 if len(T_world_cam) else np.zeros((0, 2, 3))
             ate_rmse = None
@@ -202,14 +208,14 @@ class LiveViewer:
         self.updates += 1
         self.redrawn.append(sorted(moved))
 
-    def _build_cloud(self, submap_id: int, keyframes: list, H_world_submap: np.ndarray) -> SubmapCloud:
+    def _build_cloud(self, submap_id: int, keyframes: list, H_world_submap: np.ndarray, owner=None) -> SubmapCloud:
         from ..outputs import keyframe_world_points
 
         points, colors, confidence = [], [], []
         for keyframe in keyframes:
             X, valid = keyframe_world_points(keyframe, H_world_submap)
             points.append(X[valid])
-            colors.append(keyframe_colors(keyframe)[valid])
+            colors.append(keyframe_colors(keyframe, owner)[valid])
             conf = keyframe_confidence(keyframe)
             confidence.append(np.ones(int(valid.sum()), np.float32) if conf is None else conf[valid])
         return make_cloud(submap_id, np.concatenate(points), np.concatenate(colors), np.concatenate(confidence),
