@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import shutil
 import socket
 import statistics
 import subprocess
@@ -29,29 +28,20 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests"))
 
+from browser import chromium_path, drawn_fraction, interrupt, launch  # noqa: E402
 from result_folders import write_known_result  # noqa: E402
 
 RESULTS = HERE / "results" / "viewer.md"
-BROWSER_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
 
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def drawn_fraction(png: bytes) -> float:
-    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-    canvas = image[150:, : image.shape[1] - 340]
-    return float((np.abs(canvas.astype(int) - 255).sum(axis=2) > 60).mean())
 
 
 def peak_rss_mib(pid: int) -> float:
@@ -84,12 +74,7 @@ def one_run(page, folder: Path, budget: int) -> tuple[float, float, float]:
         memory = peak_rss_mib(proc.pid)
     finally:
         page.goto("about:blank")  # disconnect first, so the server is not busy sending when it stops
-        proc.send_signal(2)
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        interrupt(proc)
     return ready, first, memory
 
 
@@ -100,16 +85,14 @@ def main() -> None:
     parser.add_argument("--keyframes", type=int, default=17)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    chromium = chromium_path()
     rows = {}
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch) / "run"
         truth = write_known_result(folder, count=args.keyframes, width=518, height=294, submap_size=4, confidence=True)
         points = sum(int(m.sum()) for m in truth["masks"].values())
         with sync_playwright() as playwright:
-            browser = playwright.chromium.launch_persistent_context(str(Path(scratch) / "profile"), executable_path=chromium,
-                                                                    headless=True, args=BROWSER_ARGS,
-                                                                    viewport={"width": 1000, "height": 700})
+            browser = launch(playwright, Path(scratch) / "profile", chromium)
             page = browser.new_page()
             page.set_default_timeout(600_000)
             for budget in (250_000, 1_000_000, points + 1):

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import socket
 import subprocess
 import sys
@@ -17,16 +16,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from browser import chromium_path, drawn_fraction, interrupt, launch
 from result_folders import write_known_result
 from sl4slam.errors import UserError
 from sl4slam.outputs import keyframe_world_points
 from sl4slam.results import load_result
 from sl4slam.submap import StoredKeyframe
 from sl4slam.viewer.scene import MapState, ViewerSettings, confidence_threshold, make_cloud
-
-BROWSER_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-
 
 # ----------------------------------------------------------------------------- result folders
 def test_version_1_folder_loops_come_from_the_summary(tmp_path: Path) -> None:
@@ -251,41 +247,21 @@ def _free_port() -> int:
 
 
 def _browser(playwright, profile: Path):
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    chromium = chromium_path()
     if chromium is None:
         pytest.skip("headless Chromium is not installed (apt-get install -y chromium)")
-    return playwright.chromium.launch_persistent_context(str(profile), executable_path=chromium, headless=True,
-                                                         args=BROWSER_ARGS, viewport={"width": 1000, "height": 700})
-
-
-def _non_background_fraction(png: bytes, right_margin: int = 340) -> float:
-    """Fraction of the 3D canvas' pixels (left of the control panel) that are not the white background."""
-    import cv2
-
-    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-    canvas = image[150:, : image.shape[1] - right_margin]  # below the notification area, left of the panel
-    return float((np.abs(canvas.astype(int) - 255).sum(axis=2) > 60).mean())
+    return launch(playwright, profile, chromium)
 
 
 def _wait_until_drawn(page, attempts: int = 30) -> float:
     """Screenshots until the clouds have arrived and been drawn; the drawn fraction of the canvas."""
     fraction = 0.0
     for _ in range(attempts):
-        fraction = _non_background_fraction(page.screenshot())
+        fraction = drawn_fraction(page.screenshot())
         if fraction > 0.02:
             break
         time.sleep(1.0)
     return fraction
-
-
-def _interrupt(proc) -> None:
-    """Ctrl-C to a viewer subprocess, as a user would; killed if it does not stop."""
-    proc.send_signal(2)
-    try:
-        proc.wait(timeout=30)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
 
 
 def _wait_for_line(proc, prefix: str, timeout: float = 60.0) -> str:
@@ -327,7 +303,7 @@ def test_view_in_a_real_browser(tmp_path: Path) -> None:
             assert "ATE RMSE" in page.content()
             browser.close()
     finally:
-        _interrupt(proc)
+        interrupt(proc)
     assert proc.returncode in (0, 130), proc.stderr.read()
 
 
@@ -395,7 +371,7 @@ def test_run_with_view_in_a_real_browser(tmp_path: Path) -> None:
             assert "ATE RMSE" in page.content()
             browser.close()
     finally:
-        _interrupt(proc)
+        interrupt(proc)
     assert proc.returncode == 0, proc.stderr.read()
 
 
