@@ -43,14 +43,30 @@ def salad_dir(shared_dir: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def tiny_model(salad_dir: Path) -> SaladModel:
+def tiny_dir(fixtures_dir: Path) -> Path:
+    """The vendored tiny case: weights, the first image of each batch, its reference outputs."""
+    return fixtures_dir / "salad_tiny"
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tiny_dir: Path) -> SaladModel:
     model = SaladModel(**TINY_SIZES).eval()
-    model.load_state_dict(load_file(str(salad_dir / "tiny" / "state_dict.safetensors")), strict=True)
+    model.load_state_dict(load_file(str(tiny_dir / "state_dict.safetensors")), strict=True)
     return model
 
 
 @pytest.fixture(scope="module")
-def tiny_io(salad_dir: Path) -> tuple[dict, dict]:
+def tiny_io(tiny_dir: Path) -> tuple[dict, dict]:
+    """Inputs (float images derived from the uint8 ones, bitwise as the reference made them) and outputs."""
+    inputs = load_file(str(tiny_dir / "inputs.safetensors"))
+    inputs["images"] = normalize_uint8_images(inputs["images_uint8"].numpy())
+    inputs["images_224"] = normalize_uint8_images(inputs["images_224_uint8"].numpy())
+    return inputs, load_file(str(tiny_dir / "outputs.safetensors"))
+
+
+@pytest.fixture(scope="module")
+def full_tiny_io(salad_dir: Path) -> tuple[dict, dict]:
+    """The full tiny case of the reference fixtures (preprocessing examples included)."""
     return (
         load_file(str(salad_dir / "tiny" / "inputs.safetensors")),
         load_file(str(salad_dir / "tiny" / "outputs.safetensors")),
@@ -156,7 +172,7 @@ def test_full_model_state_dict_equals_checkpoint_manifest(salad_dir: Path) -> No
 
 
 @pytest.mark.parametrize("prefix, image_key", [("", "images"), ("s224.", "images_224")])
-def test_tiny_model_matches_reference_outputs(tiny_model, tiny_io, salad_dir, prefix, image_key) -> None:
+def test_tiny_model_matches_reference_outputs(tiny_model, tiny_io, tiny_dir, prefix, image_key) -> None:
     inputs, outputs = tiny_io
     with torch.no_grad():
         tokens = tiny_model.backbone.model.prepare_tokens(inputs[image_key])
@@ -173,7 +189,7 @@ def test_tiny_model_matches_reference_outputs(tiny_model, tiny_io, salad_dir, pr
     torch.testing.assert_close(stages["aggregated"], outputs[prefix + "agg.aggregated"], **close)
     torch.testing.assert_close(stages["descriptor"], outputs[prefix + "descriptor"], atol=1e-6, rtol=0)
     # the float64 run of the reference agrees too
-    reference_f64 = load_file(str(salad_dir / "tiny" / "outputs_ref_f64.safetensors"))
+    reference_f64 = load_file(str(tiny_dir / "outputs_ref_f64.safetensors"))
     torch.testing.assert_close(stages["descriptor"].double(), reference_f64[prefix + "descriptor"], atol=1e-6, rtol=0)
     # layout: [L2(token) (32) | intra-normalized clusters, channel-major (16 x 8)], all over sqrt(9)
     descriptor = stages["descriptor"]
@@ -187,8 +203,8 @@ def test_tiny_model_matches_reference_outputs(tiny_model, tiny_io, salad_dir, pr
 # ----------------------------------------------------------------------------- preprocessing
 
 
-def test_preprocessing_matches_reference(tiny_model, tiny_io) -> None:
-    inputs, outputs = tiny_io
+def test_preprocessing_matches_reference(tiny_model, full_tiny_io) -> None:
+    inputs, outputs = full_tiny_io
     assert torch.equal(normalize_uint8_images(inputs["images_uint8"].numpy()), inputs["images"])
     assert torch.equal(normalize_uint8_images(inputs["images_224_uint8"].numpy()), inputs["images_224"])
     raw = inputs["preproc.raw_uint8_hwc"].numpy()
@@ -210,10 +226,10 @@ def test_preprocessing_matches_reference(tiny_model, tiny_io) -> None:
 
 
 @pytest.mark.parametrize("form", ["plain", "lightning", "safetensors"])
-def test_read_state_dict_accepts_checkpoint_forms(tmp_path, salad_dir, tiny_model, tiny_io, form) -> None:
-    state = load_file(str(salad_dir / "tiny" / "state_dict.safetensors"))
+def test_read_state_dict_accepts_checkpoint_forms(tmp_path, tiny_dir, tiny_model, tiny_io, form) -> None:
+    state = load_file(str(tiny_dir / "state_dict.safetensors"))
     if form == "safetensors":
-        path = salad_dir / "tiny" / "state_dict.safetensors"
+        path = tiny_dir / "state_dict.safetensors"
     else:
         path = tmp_path / "salad.ckpt"
         torch.save({"state_dict": state, "epoch": 1, "global_step": 10} if form == "lightning" else state, str(path))
@@ -252,9 +268,9 @@ def test_load_salad_offline_download_failure_says_where_to_put_the_file(tmp_path
     assert len(attempts) == 1
 
 
-def test_load_salad_rejects_a_foreign_checkpoint(tmp_path, salad_dir) -> None:
+def test_load_salad_rejects_a_foreign_checkpoint(tmp_path, tiny_dir) -> None:
     path = tmp_path / "tiny.ckpt"
-    torch.save(load_file(str(salad_dir / "tiny" / "state_dict.safetensors")), str(path))
+    torch.save(load_file(str(tiny_dir / "state_dict.safetensors")), str(path))
     with pytest.raises(UserError, match="not a SALAD .* wrong shapes"):
         load_salad(path)
     garbage = tmp_path / "garbage.ckpt"

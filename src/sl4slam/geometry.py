@@ -1,6 +1,6 @@
 """Pure geometry helpers: rigid, similarity and projective transforms, cameras, unprojection.
 
-Conventions (DESIGN.md): ``T_a_b`` maps points in frame ``b`` to frame ``a`` (``x_a = T_a_b x_b``);
+Conventions (docs/architecture.md): ``T_a_b`` maps points in frame ``b`` to frame ``a`` (``x_a = T_a_b x_b``);
 ``H_a_b`` is a 4x4 projective map with the same reading on homogeneous points. Pixel coordinates are
 ``(u, v) = (column, row)`` with integer values at pixel centres, as in VGGT and TUM. All functions
 are vectorized over leading batch dimensions and use float64 unless stated.

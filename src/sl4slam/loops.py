@@ -31,7 +31,6 @@ from typing import Callable, Sequence
 
 import cv2
 import numpy as np
-from scipy.stats import chi2
 
 from .backend import Backend
 from .config import AlignmentConfig, LoopConfig
@@ -124,6 +123,8 @@ def view_agreement(
 
 def chi2_threshold(config: LoopConfig, dim: int) -> float:
     """The graph check's bound on the squared Mahalanobis distance (``dim`` degrees of freedom)."""
+    from scipy.stats import chi2
+
     return float(chi2.ppf(config.consistency_quantile, dim))
 
 

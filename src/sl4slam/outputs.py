@@ -22,7 +22,6 @@ from __future__ import annotations
 import json
 import os
 import resource
-import shutil
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -31,15 +30,11 @@ import numpy as np
 
 from .errors import UserError
 from .metrics import ATEResult, ate
+from .paths import RUN_FILES, clear_run, holds_run  # noqa: F401 (part of the outputs API)
 from .pipeline import SLAMResult
 from .submap import StoredKeyframe
 
 RESULT_FORMAT = {"name": "sl4slam-result", "version": 2}
-RUN_FILES = ("trajectory.txt", "trajectory_gt.txt", "trajectory_all.txt", "map.ply", "summary.json", "trajectory.png",
-             "keyframes", "frontend_cache")
-"""What a run writes into its folder (``--overwrite`` removes exactly these)."""
-
-
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
@@ -294,18 +289,3 @@ def write_outputs(result: SLAMResult, out_dir: Path, config, source_name: str = 
     except OSError as exc:
         raise UserError(f"cannot write the results into {out_dir}: {exc.strerror or exc} ({exc.filename or out_dir})") from None
     return summary
-
-
-def clear_run(out_dir: Path) -> None:
-    """Remove an earlier run's files from ``out_dir`` (only the names a run writes)."""
-    for name in RUN_FILES:
-        path = Path(out_dir) / name
-        if path.is_dir():
-            shutil.rmtree(path)
-        elif path.exists():
-            path.unlink()
-
-
-def holds_run(out_dir: Path) -> bool:
-    """Whether ``out_dir`` holds files of an earlier run."""
-    return any((Path(out_dir) / name).exists() for name in RUN_FILES)

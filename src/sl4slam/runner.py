@@ -44,7 +44,7 @@ def prepare_output(out_dir: str | Path, overwrite: bool = False, keep: str | Pat
     A folder holding an earlier run is refused unless ``overwrite``, which removes that run's
     files first (never ``keep``, e.g. a frontend cache being replayed from inside it).
     """
-    from .outputs import clear_run, holds_run
+    from .paths import clear_run, holds_run
 
     out = Path(out_dir).expanduser()
     if out.exists() and not out.is_dir():
@@ -83,14 +83,14 @@ def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig, r
         RunInterrupted: a signal stopped the run, or the frontend kept failing; the partial results
             are written first.
     """
-    from .io import open_source
-
-    config.validate()
+    config.validate()  # the cheap checks first, without loading any model code
     if view is not None:
         from .viewer.app import require_viser
 
         require_viser()
     out = prepare_output(out_dir, overwrite, keep=replay_dir)
+    from .io import open_source
+
     source = open_source(str(source_path), stride=config.stride, max_frames=config.max_frames)
     live = bool(getattr(source, "live", False))
     try:
@@ -102,21 +102,30 @@ def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig, r
 
 def _run(source, live: bool, out: Path, config: SLAMConfig, replay_dir, progress: bool, on_submap, view,
          all_frames: bool, keep_viewer: bool) -> dict:
-    from .frontend import make_frontend
-    from .outputs import atomic_write_bytes, write_checkpoint, write_outputs
-    from .pipeline import FrontendFailedError, SLAMPipeline
-    from .retrieval import make_retrieval
+    from .frontend import frontend_requires_ground_truth
 
     if all_frames and live:
         raise UserError("--all-frames needs a re-readable source (a video file or a folder): a live source keeps "
                         "only its keyframes; record the stream to a file first")
     if len(source) < 2:
         raise UserError(f"{source.name}: {len(source)} frame(s) found; SLAM needs at least 2 frames")
+    if frontend_requires_ground_truth(config, replay_dir) and not source.has_ground_truth:
+        raise UserError(f"{source.name} has no depth and ground-truth poses, which the {config.frontend} frontend "
+                        "needs (an RGB-D sequence: TUM, 7-Scenes or the synthetic world); use --frontend vggt")
+    if config.sim.false_loop_rate > 0 and not source.has_ground_truth:
+        raise UserError(f"--sim-false-loop-rate needs ground-truth poses and depth, which {source.name} has not")
+    if config.frontend == "vggt" and replay_dir is None:
+        from .models.hub import resolve_weights
+
+        resolve_weights(config.vggt.weights)  # missing weights: one line now, not after reading frames
+
+    from .frontend import make_frontend
+    from .outputs import atomic_write_bytes, write_checkpoint, write_outputs
+    from .pipeline import FrontendFailedError, SLAMPipeline
+    from .retrieval import make_retrieval
+
     cache_dir = out / "frontend_cache" if config.output.cache_frontend else None
     frontend = make_frontend(config, replay_dir=replay_dir, cache_dir=cache_dir)
-    if frontend.requires_ground_truth and not source.has_ground_truth:
-        raise UserError(f"{source.name} has no depth and ground-truth poses, which the {frontend.name} frontend needs "
-                        "(an RGB-D sequence: TUM, 7-Scenes or the synthetic world); use --frontend vggt")
     frontend.prepare()
     retrieval = make_retrieval(config.retrieval, device=_device(config), seed=config.alignment.seed,
                                false_loops=config.sim)

@@ -1,6 +1,6 @@
 """Records and stage interfaces shared by every part of the pipeline.
 
-Shapes and frames follow DESIGN.md: ``T_a_b`` maps points in frame ``b`` to frame ``a``;
+Shapes and frames follow docs/architecture.md: ``T_a_b`` maps points in frame ``b`` to frame ``a``;
 images are ``(H, W, 3)`` uint8 RGB; geometry is float64, dense per-pixel data float32 (or
 smaller when stored).
 """

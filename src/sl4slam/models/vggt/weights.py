@@ -25,91 +25,14 @@ from pathlib import Path
 import torch
 
 from ...errors import MissingWeightsError, UserError
+from ..hub import DEFAULT_HUB_FILENAME, DEFAULT_HUB_ID, resolve_weights
 from .model import SKIPPED_PREFIXES, VGGT, VGGTModelConfig
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_HUB_ID = "facebook/VGGT-1B"
-DEFAULT_HUB_FILENAME = "model.pt"
 CONFIG_METADATA_KEY = "vggt_config"
-_LOCAL_SUFFIXES = (".pt", ".pth", ".bin", ".safetensors")
 _DTYPES = {"fp32": torch.float32, "float32": torch.float32, "bf16": torch.bfloat16, "bfloat16": torch.bfloat16,
            "fp16": torch.float16, "float16": torch.float16}
-
-
-def _download_hint(repo_id: str, filename: str) -> str:
-    return (
-        f"download https://huggingface.co/{repo_id}/resolve/main/{filename} on a machine with internet access "
-        f"(or run `huggingface-cli download {repo_id} {filename}` there) and pass the file with --weights PATH"
-    )
-
-
-def _looks_like_path(weights: str) -> bool:
-    return weights.lower().endswith(_LOCAL_SUFFIXES) or weights.startswith((".", "/", "~")) or "\\" in weights
-
-
-def resolve_weights(weights: str, cache_dir: str | Path | None = None, local_files_only: bool | None = None) -> Path:
-    """Local path of ``weights`` (a file, or a hub id fetched into / found in the hub cache).
-
-    Raises:
-        MissingWeightsError: the file does not exist, or the hub file is neither cached nor
-            downloadable (offline); the message says how to obtain it.
-    """
-    path = Path(weights).expanduser()
-    if path.is_file():
-        return path
-    if path.is_dir():
-        for name in ("model.safetensors", DEFAULT_HUB_FILENAME):
-            if (path / name).is_file():
-                return path / name
-        raise MissingWeightsError(f"no model.safetensors or model.pt in folder {path}; {_download_hint(DEFAULT_HUB_ID, DEFAULT_HUB_FILENAME)}")
-    if _looks_like_path(weights) or not re.fullmatch(r"[\w.-]+/[\w.-]+(:[\w./-]+)?", weights):
-        raise MissingWeightsError(
-            f"VGGT weights file not found: {weights}; {_download_hint(DEFAULT_HUB_ID, DEFAULT_HUB_FILENAME)}"
-        )
-    repo_id, _, filename = weights.partition(":")
-    filename = filename or DEFAULT_HUB_FILENAME
-    from huggingface_hub import hf_hub_download
-
-    kwargs = {"cache_dir": str(cache_dir) if cache_dir is not None else None}
-    try:  # the cache first: no network at all
-        return Path(hf_hub_download(repo_id, filename, local_files_only=True, **kwargs))
-    except Exception:  # not cached (huggingface_hub raises its own LocalEntryNotFoundError)
-        pass
-    if local_files_only or hub_offline():
-        raise MissingWeightsError(
-            f"VGGT weights {repo_id}/{filename} are not in the Hugging Face cache and downloads are off "
-            f"(HF_HUB_OFFLINE); {_download_hint(repo_id, filename)}")
-    if not hub_reachable():
-        raise MissingWeightsError(
-            f"VGGT weights {repo_id}/{filename} are not in the Hugging Face cache and huggingface.co cannot be "
-            f"reached; {_download_hint(repo_id, filename)}")
-    try:
-        return Path(hf_hub_download(repo_id, filename, **kwargs))
-    except Exception as exc:  # unknown repo, HTTP errors, interrupted transfer: all mean "not available here"
-        raise MissingWeightsError(
-            f"VGGT weights {repo_id}/{filename} could not be downloaded ({type(exc).__name__}); "
-            f"{_download_hint(repo_id, filename)}"
-        ) from None
-
-
-def hub_offline() -> bool:
-    """Whether the Hugging Face hub is switched off (``HF_HUB_OFFLINE`` / ``TRANSFORMERS_OFFLINE``)."""
-    import os
-
-    return any(os.environ.get(name, "").strip().lower() in ("1", "true", "yes", "on")
-               for name in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE"))
-
-
-def hub_reachable(host: str = "huggingface.co", timeout: float = 3.0) -> bool:
-    """One TCP connection attempt to the hub (seconds at most), instead of the download's retries."""
-    import socket
-
-    try:
-        with socket.create_connection((host, 443), timeout=timeout):
-            return True
-    except OSError:
-        return False
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict | None]:
