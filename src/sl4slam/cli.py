@@ -2,7 +2,8 @@
 
 ``sl4slam run SOURCE --out DIR`` runs the pipeline; ``sl4slam demo`` the synthetic SL(4)-vs-Sim(3)
 comparison; ``sl4slam synth`` writes the synthetic world; ``sl4slam convert`` converts VGGT weights;
-``sl4slam ate`` evaluates a trajectory. Run flags are generated from the config dataclasses
+``sl4slam ate`` evaluates a trajectory; ``sl4slam view`` shows a result in the browser; ``sl4slam export``
+writes it for COLMAP / nerfstudio / PLY tools. Run flags are generated from the config dataclasses
 (``sl4slam.config``), so every setting, its default and its documentation live in one place.
 """
 
@@ -115,8 +116,42 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .runner import run_slam
 
     config = config_from_args(args)
-    run_slam(args.source, args.out, config, replay_dir=args.replay, progress=not args.quiet, overwrite=args.overwrite)
+    view = _viewer_settings(args) if args.view else None
+    run_slam(args.source, args.out, config, replay_dir=args.replay, progress=not args.quiet, overwrite=args.overwrite,
+             view=view, all_frames=args.all_frames, keep_viewer=view is not None)
     return 0
+
+
+def _viewer_settings(args: argparse.Namespace):
+    from .viewer.scene import ViewerSettings
+
+    return ViewerSettings(host=args.host, port=args.port, point_budget=getattr(args, "point_budget", ViewerSettings.point_budget))
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from .viewer import view_result
+
+    view_result(args.result, _viewer_settings(args))
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from .export import export_result
+
+    options = {} if args.format == "ply" else {"max_points": args.max_points}
+    if args.format != "ply":
+        options["image_ext"] = "." + args.image_format
+    if args.format == "colmap":
+        options.update(binary=True, text=args.text)
+    report = export_result(args.result, args.format, args.out, **options)
+    print(report.line())
+    return 0
+
+
+def _add_viewer_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="interface the viewer binds; other than loopback exposes the map to the network")
+    parser.add_argument("--port", type=int, default=8080, help="viewer port (the next free one when taken)")
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -171,8 +206,29 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--replay", help="replay recorded frontend outputs from this folder instead of running the model")
     run.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out (its files are removed first)")
     run.add_argument("--quiet", action="store_true", help="no progress output")
+    run.add_argument("--view", action="store_true",
+                     help="watch the map grow in the browser (needs sl4slam[viewer]); it stays open after the run until Ctrl-C")
+    _add_viewer_flags(run)
+    run.add_argument("--all-frames", action="store_true",
+                     help="also localize every other frame against its nearest keyframe: trajectory_all.txt")
     add_config_flags(run)
     run.set_defaults(func=cmd_run)
+
+    view = verbs.add_parser("view", help="show a result folder in the browser (needs sl4slam[viewer])")
+    view.add_argument("result", help="the --out folder of a run")
+    _add_viewer_flags(view)
+    view.add_argument("--point-budget", type=int, default=1_000_000, help="most points sent to the browser")
+    view.set_defaults(func=cmd_view)
+
+    export = verbs.add_parser("export", help="export a result folder: COLMAP sparse model, nerfstudio, per-submap PLY")
+    export.add_argument("result", help="the --out folder of a run")
+    export.add_argument("--format", required=True, choices=["colmap", "nerfstudio", "ply"])
+    export.add_argument("--out", help="output folder (default: RESULT/export_FORMAT)")
+    export.add_argument("--max-points", type=int, default=1_000_000, help="points in the COLMAP / nerfstudio point cloud")
+    export.add_argument("--text", action="store_true", help="COLMAP: also write the .txt model beside the .bin one")
+    export.add_argument("--image-format", choices=["png", "jpg"], default="png",
+                        help="keyframe images: png (lossless) or jpg (quality 95, several times faster to write)")
+    export.set_defaults(func=cmd_export)
 
     demo = verbs.add_parser("demo", help="synthetic world: SL(4) versus Sim(3) under a projective distortion")
     demo.add_argument("--out", default="sl4slam_demo", help="output folder")
