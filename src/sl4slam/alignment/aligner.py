@@ -87,13 +87,22 @@ class SL4Aligner(PointAligner):
 
     def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
         alignment = estimate_sl4(X_a, X_b, self.config, seed=seed)
-        if alignment.fallback is None:
+        flatness = alignment.extras.get("planarity", alignment.extras.get("sl4", {}).get("planarity", 0.0))
+        if alignment.fallback is None and flatness >= self.config.near_planar_threshold:
             return alignment
-        # Degenerate 15-DOF fit (e.g. a planar shared frame): the frame's two cameras supply the
-        # constraints the points lack; keep it when it explains at least as many points.
+        # A degenerate 15-DOF fit (a planar shared frame), or a nearly planar frame where RANSAC
+        # may settle on the dominant plane and call the rest outliers: the frame's two cameras
+        # supply the constraints the points lack. Keep that fit when it explains more points
+        # (at least as many, for a degenerate fit).
         constrained = camera_constrained_sl4(X_a, X_b, view_a.camera, view_b.camera, alignment.H, self.config)
-        if constrained is not None and constrained.inlier_ratio >= alignment.inlier_ratio:
+        if constrained is None:
+            return alignment
+        if alignment.fallback is not None and constrained.inlier_ratio >= alignment.inlier_ratio:
             constrained.fallback = f"{alignment.fallback}; used the camera-constrained projective fit"
+            return constrained
+        if alignment.fallback is None and constrained.num_inliers > alignment.num_inliers:
+            constrained.fallback = (f"nearly planar shared frame (planarity {flatness:.3g}): the camera-constrained fit "
+                                    f"explains more points ({constrained.inlier_ratio:.3f} vs {alignment.inlier_ratio:.3f})")
             return constrained
         return alignment
 
