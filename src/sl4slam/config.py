@@ -133,9 +133,11 @@ class AlignmentConfig(Section):
     flag_names: ClassVar[dict[str, str]] = {
         "model": "--alignment", "min_points": "--alignment-min-points",
         "min_inlier_ratio": "--alignment-min-inlier-ratio", "max_condition": "--alignment-max-condition"}
-    choices: ClassVar[dict[str, tuple[str, ...]]] = {"model": ("auto", "sl4", "sim3-points", "sim3-cameras")}
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {
+        "model": ("auto", "sl4", "sim3-points", "sim3-cameras"), "planar_model": ("calibration-scale", "camera-constrained")}
     advanced: ClassVar[frozenset[str]] = frozenset({
-        "max_correspondences", "max_points", "max_refit_points", "planarity_threshold", "near_planar_threshold", "refit",
+        "max_correspondences", "max_points", "max_refit_points", "planarity_threshold", "min_relief", "planar_model",
+        "near_planar_threshold", "refit",
         "hypothesis_batch", "early_stop_spread", "preemptive_points", "preemptive_keep",
         "preemptive_min_keep", "refit_rounds", "refit_min_gain", "small_set",
         "camera_constrained_iterations", "camera_constrained_ridge", "min_points", "min_inlier_ratio",
@@ -169,6 +171,15 @@ class AlignmentConfig(Section):
     """Spread of the points along their thinnest principal axis relative to the widest
     (interdecile ranges, robust to a few off-plane points) below which they count as coplanar:
     the 15-DOF fit is degenerate and a constrained model is used instead."""
+    min_relief: float = 0.1
+    """Relief of the shared frame's points off their best plane (interdecile thickness / median
+    distance to the camera) below which the 15-DOF fit is degenerate: VGGT's depth errors (AbsRel
+    2-4 %, smooth) fake about that much structure on a flat floor, which RANSAC then turns into a
+    projective error (benchmarks/bench_robustness.py). Rooms and desks seen from 1-3 m: 0.2-0.3."""
+    planar_model: str = "calibration-scale"
+    """What measures a degenerate shared frame: "calibration-scale" (its two cameras and depth
+    ratio: VGGT-SLAM 2.0's link, immune to depth warps) or "camera-constrained" (a projective fit
+    whose free part the points choose)."""
     near_planar_threshold: float = 0.15
     """Below this planarity (but above ``planarity_threshold``) the shared frame is dominated by a
     plane, where RANSAC may settle on the plane and call the rest outliers (on the synthetic world:
@@ -226,6 +237,7 @@ class AlignmentConfig(Section):
         self._require("max_refit_points", self.max_refit_points >= 0, ">= 0 (0: all)")
         self._require("min_inliers", self.min_inliers >= 5, "at least 5 (one minimal sample)")
         self._require("planarity_threshold", 0 <= self.planarity_threshold < 1, "in [0, 1)")
+        self._require("min_relief", 0 <= self.min_relief < 1, "in [0, 1)")
         self._require("near_planar_threshold", self.planarity_threshold <= self.near_planar_threshold <= 1,
                       "between --ransac-planarity-threshold and 1")
         self._require("seed", self.seed >= 0, ">= 0")

@@ -7,10 +7,12 @@ reconstructions of the *same image*, which agree (inlier ratios near 1) whatever
 the place. Three independent checks therefore stand between a candidate and the graph, each with a
 reason the run summary lists:
 
-1. **Alignment.** The loop frame's two reconstructions must align with the model the graph uses,
-   without a fallback, keeping ``LoopConfig.min_inlier_ratio`` of the points (or half the
-   odometry's median, when the model fits consecutive submaps worse than that), and pass the same
-   edge checks as odometry (finite, orientation-preserving, conditioned).
+1. **Alignment.** The loop frame's two reconstructions must align with the model the graph uses
+   (a constrained model of that group for a degenerate frame, never a weaker stand-in), a point fit
+   keeping ``LoopConfig.min_inlier_ratio`` of the points (or half the odometry's median, when the
+   model fits consecutive submaps worse than that), and pass the same edge checks as odometry
+   (finite, orientation-preserving, conditioned). A link from the frame's cameras (no point fit) is
+   judged by the view and graph checks alone.
 2. **Views** (:func:`view_agreement`). Inside the new submap, the loop frame's confident points are
    projected into the query keyframe: enough of them must land in its image in front of the camera
    (overlap), agree with its own depth (consistency), and the two images must look alike there
@@ -198,10 +200,11 @@ class LoopVerifier:
             return LoopDecision(False, f"the loop frame's alignment failed: {exc}")
         checks = {"inlier_ratio": alignment.inlier_ratio}
         gate = self.inlier_gate(odometry_ratios)
-        problem = edge_problem(alignment, self.alignment_config)
-        if alignment.fallback:
-            problem = f"the loop frame's alignment needed a fallback ({alignment.fallback})"
-        elif problem is None and alignment.inlier_ratio < gate:
+        camera_link = alignment.extras.get("method") in ("calibration_scale", "shared_frame")
+        problem = edge_problem(alignment, self.alignment_config, fitted=not camera_link)
+        if alignment.model != self.aligner.group:
+            problem = f"the loop frame's alignment fell back to a weaker model ({alignment.fallback})"
+        elif problem is None and not camera_link and alignment.inlier_ratio < gate:
             problem = f"inlier ratio {alignment.inlier_ratio:.2f} < {gate:.2f}"
         if problem:
             return LoopDecision(False, problem, alignment, checks=checks)
