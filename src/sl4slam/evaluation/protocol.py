@@ -550,13 +550,15 @@ def evaluate(
         raise UserError(f"--replay {replay_dir} is not a folder; pass the frontend_cache/ folder of an earlier evaluation")
 
     point_configs = [point.apply(base) for point in points]
+    # what a run's numbers depend on besides its config (not the number of runs)
+    measurement = {k: v for k, v in dataclasses.asdict(settings).items() if k not in ("runs", "dataset")}
     tasks: list[RunTask] = []
     for point, point_config in zip(points, point_configs):
         for sequence in chosen:
             for run in range(settings.runs):
                 run_config = seeded(point_config, run)
                 config_dict = config_to_dict(run_config)
-                fingerprint = _digest({"config": config_dict, "settings": dataclasses.asdict(settings),
+                fingerprint = _digest({"config": config_dict, "measure": measurement,
                                        "sequence": [sequence.dataset, sequence.name, str(sequence.path.resolve())]})
                 tasks.append(RunTask(
                     point=point.label, sequence=sequence, run=run, config=config_dict,
