@@ -202,6 +202,7 @@ def test_tum_protocol_end_to_end_and_resumable(tum_root, tmp_path) -> None:
     t_est, T_est = read_tum_trajectory(run_dir / "trajectory.txt")
     t_gt, T_gt = read_tum_trajectory(tum_root / "world-0" / "groundtruth.txt")
     assert first["metrics"]["ate_rmse"] == pytest.approx(ate(t_est, T_est, t_gt, T_gt).rmse, rel=1e-12)
+    assert not (run_dir / "keyframes").exists()  # TUM has no dense metric: per-keyframe points are not written
     # runs differ by seed only: both seeds are recorded in the run's own summary
     summaries = [json.loads((Path(r["run_dir"]) / "summary.json").read_text()) for r in outcome.results[:2]]
     assert [s["config"]["sim"]["seed"] for s in summaries] == [0, 1]
@@ -248,6 +249,10 @@ def test_backend_sweep_replays_one_recording_per_sequence_and_seed(tum_root, tmp
     assert len(recordings) == 1 and (recordings[0] / "key.json").is_file()
     assert "Comparison: ATE RMSE [m]" in (out / "tables.md").read_text()
 
+    # a single run's recording is not a store: said before any work
+    with pytest.raises(UserError, match="one run's recording"):
+        evaluate(tum_root, tmp_path / "x", settings, config, sequences=["world-0"], workers=1, progress=False,
+                 replay_dir=recordings[0])
     # another evaluation replays that store (no simulator, no model) and reproduces the numbers exactly
     again = evaluate(tum_root, tmp_path / "replayed", settings, config, grid=["backend.kind=sl4"], sequences=["world-0"],
                      workers=1, replay_dir=out / "frontend_cache", progress=False)
@@ -292,6 +297,8 @@ def test_seven_scenes_protocol_with_an_exact_frontend(seven_scenes_root, tmp_pat
     assert metrics["completion"] < 0.02  # the 25 % least confident pixels are missing from the estimate
     assert metrics["chamfer"] == pytest.approx(0.5 * (metrics["accuracy"] + metrics["completion"]))
     assert metrics["dense_keyframes"] == result["counts"]["keyframes"]
+    # the per-keyframe points (large) are removed once measured, unless kept
+    assert not (Path(result["run_dir"]) / "keyframes").exists()
     table = (tmp_path / "out" / "tables.md").read_text()
     for label in ("ATE RMSE [m]", "Accuracy [m]", "Completion [m]", "Chamfer [m]"):
         assert f"| {label} |" in table
@@ -312,7 +319,6 @@ def test_real_tum_excerpt(shared_dir, tmp_path) -> None:
     config.stride = 6  # 7 frames of 640x480
     config.keyframes.tau_disparity = 5.0
     config.submap.size = 3
-    config.output.save_keyframe_points = False  # TUM needs the trajectory only
     outcome = evaluate(root, tmp_path / "out", EvalSettings(dataset="tum", runs=1), config, workers=1, progress=False)
     assert [s.name for s in outcome.sequences] == ["xyz"] and "desk" in outcome.missing
     (result,) = outcome.results

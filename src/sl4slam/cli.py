@@ -149,7 +149,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if fixed_seeds:
         raise UserError(f"{' and '.join(fixed_seeds)} cannot be set here: run r uses seed r; choose the seeds with --runs")
     config = config_from_args(args)
-    settings = EvalSettings(dataset=args.dataset, runs=args.runs, dense=not args.no_dense)
+    settings = EvalSettings(dataset=args.dataset, runs=args.runs, dense=not args.no_dense,
+                            keep_keyframe_points=args.keep_keyframe_points)
     outcome = evaluate(
         args.root, args.out, settings=settings, config=config, grid=args.grid, sequences=args.sequences,
         workers=args.workers, threads=args.threads, ray=args.ray is not None, ray_address=args.ray or None,
@@ -178,6 +179,8 @@ def _add_eval_arguments(parser: argparse.ArgumentParser, grid_required: bool) ->
                         help="run on Ray: join the cluster at ADDRESS (or RAY_ADDRESS), else start a local instance")
     parser.add_argument("--replay", metavar="DIR", help="frontend_cache/ folder of an earlier evaluation to replay from")
     parser.add_argument("--no-dense", action="store_true", help="7-Scenes: skip the dense metrics (no Open3D needed)")
+    parser.add_argument("--keep-keyframe-points", action="store_true",
+                        help="keep each run's keyframes/ (per-keyframe dense points; GBs for a full evaluation)")
     parser.add_argument("--config", help="TOML or JSON file of run settings (flags override it)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     add_config_flags(parser)

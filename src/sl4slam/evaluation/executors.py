@@ -180,10 +180,13 @@ class RayExecutor(Executor):
                 raise UserError(f"cannot start or reach Ray at {address or 'a local instance'}: {exc}") from None
             self._started = True
         resources = ray.cluster_resources()
+        if gpus_per_task and not resources.get("GPU", 0):
+            # a task asking for a GPU would wait forever on a CPU-only cluster; the model runs on CPUs there
+            self.gpus_per_task = 0
         self.workers = max(1, int(resources.get("CPU", 1) // self.threads))
         self.description = (f"Ray ({address or 'local'}): {resources.get('CPU', 0):.0f} CPUs, "
                             f"{resources.get('GPU', 0):.0f} GPUs; {self.threads} CPU(s)"
-                            + (f" and {gpus_per_task} GPU(s)" if gpus_per_task else "") + " per run")
+                            + (f" and {self.gpus_per_task} GPU(s)" if self.gpus_per_task else "") + " per run")
 
     def map_unordered(self, fn, tasks):
         ray = self._ray

@@ -73,6 +73,10 @@ class EvalSettings:
     """Voxel size (m) of the copies ICP runs on (reference dense evaluation)."""
     icp_max_correspondence: float = 0.1
     """ICP's maximum correspondence distance (m) (reference dense evaluation)."""
+    keep_keyframe_points: bool = False
+    """Keep each run's ``keyframes/`` (dense points per keyframe, ~2.4 MB each at VGGT's 518x392:
+    tens of GB for a full evaluation). Off: TUM runs do not write them, and 7-Scenes runs remove
+    them once the dense metrics are measured."""
 
     def validate(self) -> None:
         get_dataset(self.dataset)
@@ -401,6 +405,8 @@ def run_one(task: RunTask) -> dict:
         t0 = time.perf_counter()
         result["metrics"], result["trajectory"] = _measure(task, dataset, config, run_dir)
         result["seconds"]["evaluation"] = round(time.perf_counter() - t0, 3)
+        if not task.settings.keep_keyframe_points:
+            shutil.rmtree(run_dir / "keyframes", ignore_errors=True)
         result["status"] = "ok"
     except UserError as exc:
         result["reason"] = str(exc)
@@ -539,6 +545,8 @@ def evaluate(
         from .metrics import require_open3d
 
         require_open3d()
+    elif not settings.keep_keyframe_points:
+        base.output.save_keyframe_points = False  # nothing measures them
     points = parse_grid(grid)
     chosen, missing = dataset.resolve(root, sequences)
     out_dir = Path(out_dir).expanduser()
@@ -548,6 +556,9 @@ def evaluate(
     stores = [store] + ([Path(replay_dir).expanduser()] if replay_dir else [])
     if replay_dir and not Path(replay_dir).expanduser().is_dir():
         raise UserError(f"--replay {replay_dir} is not a folder; pass the frontend_cache/ folder of an earlier evaluation")
+    if replay_dir and any(Path(replay_dir).expanduser().glob("submap_*.npz")):
+        raise UserError(f"--replay {replay_dir} is one run's recording; eval replays the frontend_cache/ folder of an "
+                        "earlier evaluation (OUT/frontend_cache), which holds one recording per sequence and settings")
 
     point_configs = [point.apply(base) for point in points]
     # what a run's numbers depend on besides its config (not the number of runs)
@@ -590,18 +601,23 @@ def evaluate(
     needs_model = any(tasks[i].replay_dir is None and tasks[i].config["frontend"] == "vggt" for i in todo)
     _check_configs(point_configs, needs_model and not ray)
 
-    gpus = 0
+    gpus = 0  # local: GPUs to spread workers over; Ray: each model run asks for one GPU
     if needs_model and any(_needs_gpu(c) for c in point_configs):
-        import torch
+        if ray:
+            gpus = 1
+        else:
+            import torch
 
-        gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
+            gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
     if workers is None:
-        workers = max(1, min(len(todo) or 1, gpus or cpu_count()))
+        workers = max(1, min(len(todo) or 1, cpu_count() if ray else (gpus or cpu_count())))
     description = "nothing to run"
     if todo:
         if progress:
+            replaying = sum(tasks[i].replay_dir is not None for i in todo)
             print(f"evaluating {len(todo)} run(s) ({reused} reused) of {len(chosen)} sequence(s) x {len(points)} "
-                  f"setting(s) x {settings.runs} run(s) into {out_dir}", file=stream, flush=True)
+                  f"setting(s) x {settings.runs} run(s) into {out_dir}: {replaying} replay a recording, "
+                  f"{len(keys_planned)} record one, {len(second_wave)} replay those afterwards", file=stream, flush=True)
         out_dir.mkdir(parents=True, exist_ok=True)
         done = reused
         with make_executor(workers, ray=ray, ray_address=ray_address, threads=threads, gpus=gpus) as executor:

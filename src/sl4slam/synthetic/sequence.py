@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import shutil
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -77,20 +79,33 @@ def _write_image(path: Path, image: np.ndarray) -> None:
         raise UserError(f"cannot write {path}; check free disk space and permissions")
 
 
-def _publish(staging: Path, out_dir: Path) -> None:
-    """Move a finished staging folder into place (replacing ``out_dir``)."""
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    os.replace(staging, out_dir)
-
-
-def _staging_folder(out_dir: Path) -> Path:
+@contextlib.contextmanager
+def _staged(out_dir: Path) -> Iterator[Path]:
+    """A temporary sibling folder that replaces ``out_dir`` when the block succeeds (removed otherwise)."""
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = out_dir.with_name(f".{out_dir.name}.{os.getpid()}.tmp")
     if staging.exists():
         shutil.rmtree(staging)
     staging.mkdir()
-    return staging
+    try:
+        yield staging
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        os.replace(staging, out_dir)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+
+
+def _metadata(world, seed: int, num_frames: int, width: int, height: int, K: np.ndarray, depth_scale: float,
+              depth_range: tuple[float, float], **extra) -> str:
+    """``synthetic.json``: what was rendered, with which camera, and the depth range met."""
+    metadata = {
+        "generator": "sl4slam.synthetic", "seed": int(seed), "num_frames": num_frames, "width": width, "height": height,
+        "fps": SYNTHETIC_FPS, "depth_scale": depth_scale, "K": K.tolist(), **extra,
+        "depth_range_m": list(depth_range), "room_size_m": world.layout.room_max.tolist(), "num_boxes": world.num_boxes,
+    }
+    return json.dumps(metadata, indent=2) + "\n"
 
 
 def write_synthetic_sequence(
@@ -136,8 +151,7 @@ def write_synthetic_sequence(
     stamps = _timestamps(num_frames)
     names = [f"{stamp:.6f}.png" for stamp in stamps]
 
-    staging = _staging_folder(out_dir)
-    try:
+    with _staged(out_dir) as staging:
         (staging / "rgb").mkdir()
         (staging / "depth").mkdir()
         floor_only = np.zeros(num_frames, bool)
@@ -174,36 +188,21 @@ def write_synthetic_sequence(
         cv2.imwrite(str(staging / CONTACT_SHEET_FILE), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
         floor_start, floor_stop = _longest_run(floor_only)
-        metadata = {
-            "generator": "sl4slam.synthetic",
-            "seed": int(seed),
-            "num_frames": num_frames,
-            "width": width,
-            "height": height,
-            "fps": SYNTHETIC_FPS,
-            "depth_scale": TUM_DEPTH_SCALE,
-            "K": K.tolist(),
-            "floor_only": {
+        (staging / METADATA_FILE).write_text(_metadata(
+            world, seed, num_frames, width, height, K, TUM_DEPTH_SCALE, (depth_min, depth_max),
+            floor_only={
                 "start": floor_start,
                 "stop": floor_stop,
                 "count": int(floor_only.sum()),
                 "description": "frames [start, stop) see nothing but the floor (planar, degenerate case)",
                 "designed_path_interval": list(FLOOR_HOLD),
             },
-            "loop": {
+            loop={
                 "first_frame": 0,
                 "last_frame": num_frames - 1,
                 "description": "the last pose equals the first; the path circles the room once",
             },
-            "depth_range_m": [depth_min, depth_max],
-            "room_size_m": world.layout.room_max.tolist(),
-            "num_boxes": world.num_boxes,
-        }
-        (staging / METADATA_FILE).write_text(json.dumps(metadata, indent=2) + "\n")
-        _publish(staging, out_dir)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
+        ))
     logger.info(
         "wrote %d synthetic frames to %s (floor-only frames %d..%d)", num_frames, out_dir, floor_start, floor_stop - 1
     )
@@ -239,8 +238,7 @@ def write_seven_scenes_sequence(
     world = make_world(seed)
     poses = _path_from_layout(world.layout, path_parameters(num_frames))
     K = seven_scenes_intrinsics(width, height)
-    staging = _staging_folder(out_dir)
-    try:
+    with _staged(out_dir) as staging:
         depth_min, depth_max = np.inf, 0.0
         for start in range(0, num_frames, block_frames):
             stop = min(start + block_frames, num_frames)
@@ -254,25 +252,8 @@ def write_seven_scenes_sequence(
                 _write_image(stem.with_name(stem.name + ".color.png"), rgb[offset])
                 _write_image(stem.with_name(stem.name + ".depth.png"), raw_depth[offset])
                 np.savetxt(stem.with_name(stem.name + ".pose.txt"), poses[index], fmt="%.10e", delimiter="\t")
-        metadata = {
-            "generator": "sl4slam.synthetic",
-            "layout": "7scenes",
-            "seed": int(seed),
-            "num_frames": num_frames,
-            "width": width,
-            "height": height,
-            "fps": SYNTHETIC_FPS,
-            "depth_scale": 1000.0,
-            "K": K.tolist(),
-            "depth_range_m": [depth_min, depth_max],
-            "room_size_m": world.layout.room_max.tolist(),
-            "num_boxes": world.num_boxes,
-        }
-        (staging / METADATA_FILE).write_text(json.dumps(metadata, indent=2) + "\n")
-        _publish(staging, out_dir)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
+        (staging / METADATA_FILE).write_text(_metadata(world, seed, num_frames, width, height, K, 1000.0,
+                                                       (depth_min, depth_max), layout="7scenes"))
     logger.info("wrote %d synthetic frames in the 7-Scenes layout to %s", num_frames, out_dir)
     return out_dir
 
