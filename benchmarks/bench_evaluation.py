@@ -5,7 +5,8 @@ protocol on them with the simulated frontend (5 runs, run r = seed r), and measu
 
 1. the paper-layout tables (ATE; on 7-Scenes also accuracy / completion / chamfer) and the time
    per sequence;
-2. the wall time of the same evaluation with 2 local workers against 1 (medians of repeats,
+2. the wall time of the same 7-Scenes evaluation (runs and dense metrics) with a pool of 2 local
+   workers against a pool of 1, and against runs in the calling process (medians of repeats,
    side by side, alternating);
 3. whether Ray (a local instance, 2 workers) gives exactly the local pool's numbers.
 
@@ -59,14 +60,51 @@ def run_config(run_args: list[str]):
 
 
 def table_block(path: Path) -> str:
+    """The tables of an evaluation's tables.md, without its title and headings."""
     text = path.read_text()
-    return text[text.index("## "):].strip() if "## " in text else text
+    text = text[text.index("## "):] if "## " in text else text
+    return "\n".join(line for line in text.splitlines() if line != "## Results").strip()
 
 
 def timed(**kwargs):
     start = time.perf_counter()
     outcome = evaluate(**kwargs)
     return outcome, time.perf_counter() - start
+
+
+def scaling(root: Path, names: list[str], config, runs: int, repeats: int) -> list[str]:
+    """Wall time of one 7-Scenes evaluation in this process, on a pool of 1 and on a pool of 2."""
+    from sl4slam.evaluation import LocalExecutor
+
+    runs = max(2, runs // 2)
+    threads = max(1, cpu_count() // 2)
+    variants = {"this process": lambda: None, "pool of 1": lambda: LocalExecutor(1, threads),
+                "pool of 2": lambda: LocalExecutor(2, threads)}
+    seconds: dict[str, list[float]] = {name: [] for name in variants}
+    for _ in range(repeats):
+        for name, make in variants.items():
+            out = root.parent / "scaling"
+            shutil.rmtree(out, ignore_errors=True)
+            executor = make()
+            try:
+                _, elapsed = timed(root=root, out_dir=out, settings=EvalSettings(dataset="7scenes", runs=runs),
+                                   config=config, sequences=names, workers=1, executor=executor, progress=False)
+            finally:
+                if executor is not None:
+                    executor.close()
+            seconds[name].append(elapsed)
+    median = {name: statistics.median(values) for name, values in seconds.items()}
+    lines = ["### Local parallelism\n",
+             f"7-Scenes layout (SLAM and dense metrics), {len(names)} sequences x {runs} runs, fresh output folder "
+             f"each time, {repeats} repeats alternating; each worker process has {threads} thread(s) and its start-up "
+             "(imports) is included; \"this process\" runs one after the other in the calling process, whose imports "
+             "are already done.\n",
+             "| executor | wall s (median) | all repeats |", "|---|---|---|"]
+    lines += [f"| {name} | {median[name]:.1f} | {', '.join(f'{v:.1f}' for v in values)} |" for name, values in seconds.items()]
+    lines.append(f"\n2-worker / 1-worker wall time (pools): **{median['pool of 2'] / median['pool of 1']:.2f}**; pool of 2 / "
+                 f"this process: {median['pool of 2'] / median['this process']:.2f} (load average during: "
+                 f"{os.getloadavg()[0]:.1f}).\n")
+    return lines
 
 
 def main() -> None:
@@ -81,7 +119,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2, help="repeats of the 1- vs 2-worker timing")
     parser.add_argument("--tum-root", help="a real TUM RGB-D root to evaluate too (simulated frontend)")
     parser.add_argument("--sequences-tum", nargs="+", help="sequences of --tum-root (default: all found)")
-    parser.add_argument("--no-ray", action="store_true")
+    parser.add_argument("--parts", nargs="+", default=["tables", "scaling", "ray"], choices=["tables", "scaling", "ray"],
+                        help="what to measure (the report holds these parts only)")
     parser.add_argument("--output", default=str(HERE / "results" / "evaluation.md"))
     parser.add_argument("run_args", nargs="*", help="run settings after --, e.g. -- --sim-profile vggt")
     args = parser.parse_args()
@@ -111,7 +150,7 @@ def main() -> None:
                   f"{args.runs} runs per sequence, run r = seed r; {args.workers} local workers.\n")
 
     timings = {}
-    for key, root in (("tum", tum), ("7scenes", seven)):
+    for key, root in (("tum", tum), ("7scenes", seven)) if "tables" in args.parts else ():
         out = work / f"eval_{key}"
         shutil.rmtree(out, ignore_errors=True)
         outcome, seconds = timed(root=root, out_dir=out, settings=EvalSettings(dataset=key, runs=args.runs), config=config,
@@ -134,7 +173,7 @@ def main() -> None:
                           f"{statistics.median(r['seconds']['total'] for r in ok):.1f} |")
         report.append("")
 
-    if args.tum_root:
+    if args.tum_root and "tables" in args.parts:
         out = work / "eval_real_tum"
         shutil.rmtree(out, ignore_errors=True)
         real_config = run_config(["--frontend", "simulated", "--retrieval", "orb", *frontend_args])
@@ -145,28 +184,10 @@ def main() -> None:
                       "threshold 25 px at 640x480).\n")
         report.append(table_block(out / "tables.md") + "\n")
 
-    # 2 workers against 1, same runs, alternating, fresh output folders each time
-    scaling_runs = max(2, args.runs // 2)
-    one, two = [], []
-    for repeat in range(args.repeats):
-        for workers, bucket in ((1, one), (2, two)):
-            out = work / f"scaling_{workers}"
-            shutil.rmtree(out, ignore_errors=True)
-            _, seconds = timed(root=tum, out_dir=out, settings=EvalSettings(dataset="tum", runs=scaling_runs), config=config,
-                               sequences=names, workers=workers, progress=False)
-            bucket.append(seconds)
-    report.append("### Local parallelism\n")
-    report.append(f"TUM layout, {len(names)} sequences x {scaling_runs} runs, fresh output folder each time, "
-                  f"{args.repeats} repeats alternating. 1 worker = runs in the calling process; 2 workers = a pool of "
-                  f"2 spawned processes x {max(1, cpu_count() // 2)} thread(s) (their start-up is included).\n")
-    report.append("| workers | wall s (median) | all repeats |")
-    report.append("|---|---|---|")
-    report.append(f"| 1 | {statistics.median(one):.1f} | {', '.join(f'{s:.1f}' for s in one)} |")
-    report.append(f"| 2 | {statistics.median(two):.1f} | {', '.join(f'{s:.1f}' for s in two)} |")
-    report.append(f"\n2-worker / 1-worker wall time: **{statistics.median(two) / statistics.median(one):.2f}** "
-                  f"(load average during: {os.getloadavg()[0]:.1f}).\n")
+    if "scaling" in args.parts:
+        report += scaling(seven, names, config, args.runs, args.repeats)
 
-    if not args.no_ray:
+    if "ray" in args.parts:
         try:
             import ray  # noqa: F401
 

@@ -261,6 +261,18 @@ def test_backend_sweep_replays_one_recording_per_sequence_and_seed(tum_root, tmp
     assert again.results[0]["metrics"]["ate_rmse"] == recorded["metrics"]["ate_rmse"]
 
 
+@pytest.mark.slow  # spawning the workers takes ~30 s on 2 cores; the fast set checks LocalExecutor on its own
+def test_a_process_pool_gives_the_numbers_of_a_serial_evaluation(tum_root, tmp_path) -> None:
+    config = small_config(perspective=0.05)
+    settings = EvalSettings(dataset="tum", runs=2)
+    serial = evaluate(tum_root, tmp_path / "serial", settings, config, sequences=["world-0"], workers=1, progress=False)
+    with LocalExecutor(workers=2, threads=1) as executor:
+        pooled = evaluate(tum_root, tmp_path / "pool", settings, config, sequences=["world-0"], executor=executor,
+                          progress=False)
+    assert pooled.executor == "2 local worker processes x 1 thread(s)"
+    assert [r["metrics"] for r in pooled.results] == [r["metrics"] for r in serial.results]
+
+
 def test_a_failing_sequence_is_reported_and_the_evaluation_goes_on(tum_root, tmp_path) -> None:
     root = tmp_path / "root"
     root.mkdir()

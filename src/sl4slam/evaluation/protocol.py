@@ -508,6 +508,7 @@ def evaluate(
     replay_dir: str | Path | None = None,
     progress: bool = True,
     stream=None,
+    executor: Executor | None = None,
 ) -> EvalOutcome:
     """Evaluate SLAM on a benchmark's sequences with the paper's protocol (module docstring).
 
@@ -523,6 +524,8 @@ def evaluate(
         ray, ray_address: run on Ray (see :class:`~.executors.RayExecutor`).
         replay_dir: a frontend cache store of an earlier evaluation (its ``frontend_cache/``).
         progress: print one line per finished run to ``stream`` (default stderr).
+        executor: run on this executor (the caller closes it) instead of one made from
+            ``workers``, ``threads`` and ``ray``.
 
     Returns:
         :class:`EvalOutcome`. Each result dict holds ``point, sequence, run, seed, status``
@@ -620,7 +623,10 @@ def evaluate(
                   f"{len(keys_planned)} record one, {len(second_wave)} replay those afterwards", file=stream, flush=True)
         out_dir.mkdir(parents=True, exist_ok=True)
         done = reused
-        with make_executor(workers, ray=ray, ray_address=ray_address, threads=threads, gpus=gpus) as executor:
+        owned = executor is None
+        if owned:
+            executor = make_executor(workers, ray=ray, ray_address=ray_address, threads=threads, gpus=gpus)
+        with executor if owned else contextlib.nullcontext(executor):
             description = executor.description
             if progress:
                 print(f"running on {description}", file=stream, flush=True)
