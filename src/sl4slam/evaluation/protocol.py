@@ -540,35 +540,83 @@ def evaluate(
     settings = settings if settings is not None else EvalSettings()
     settings.validate()
     dataset = get_dataset(settings.dataset)
-    base = copy.deepcopy(config) if config is not None else SLAMConfig()
-    record = bool(base.output.cache_frontend)
-    base.output.cache_frontend = False  # recording is decided per run (record_to)
-    if dataset.dense and settings.dense:
-        base.output.save_keyframe_points = True
-        from .metrics import require_open3d
-
-        require_open3d()
-    elif not settings.keep_keyframe_points:
-        base.output.save_keyframe_points = False  # nothing measures them
+    base, record = _base_config(config, settings, dataset)
     points = parse_grid(grid)
     chosen, missing = dataset.resolve(root, sequences)
     out_dir = Path(out_dir).expanduser()
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"--out {out_dir} exists and is not a folder; choose another output folder")
     store = out_dir / "frontend_cache"
-    stores = [store] + ([Path(replay_dir).expanduser()] if replay_dir else [])
-    if replay_dir and not Path(replay_dir).expanduser().is_dir():
-        raise UserError(f"--replay {replay_dir} is not a folder; pass the frontend_cache/ folder of an earlier evaluation")
-    if replay_dir and any(Path(replay_dir).expanduser().glob("submap_*.npz")):
-        raise UserError(f"--replay {replay_dir} is one run's recording; eval replays the frontend_cache/ folder of an "
-                        "earlier evaluation (OUT/frontend_cache), which holds one recording per sequence and settings")
+    stores = [store] + ([_check_replay_dir(Path(replay_dir).expanduser())] if replay_dir else [])
 
     point_configs = [point.apply(base) for point in points]
+    tasks = _build_tasks(points, point_configs, chosen, settings, out_dir)
+    finished = finished_runs(out_dir)
+    results: list[dict | None] = [_reuse(task, finished) for task in tasks]
+    todo = [i for i, r in enumerate(results) if r is None]
+    waves = _plan_recordings(tasks, todo, stores, store if record else None)
+    needs_model = any(tasks[i].replay_dir is None and tasks[i].config["frontend"] == "vggt" for i in todo)
+    _check_configs(point_configs, needs_model and not ray)
+
+    description = "nothing to run"
+    if todo:
+        if progress:
+            replaying = sum(tasks[i].replay_dir is not None for i in todo)
+            recording = sum(tasks[i].record_to is not None for i in todo)
+            print(f"evaluating {len(todo)} run(s) ({len(tasks) - len(todo)} reused) of {len(chosen)} sequence(s) x "
+                  f"{len(points)} setting(s) x {settings.runs} run(s) into {out_dir}: {replaying} replay a recording, "
+                  f"{recording} record one, {len(waves[1])} replay those afterwards", file=stream, flush=True)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        owned = executor is None
+        if owned:
+            gpus = _gpus(point_configs, needs_model, ray)
+            if workers is None:
+                workers = max(1, min(len(todo), cpu_count() if ray else (gpus or cpu_count())))
+            executor = make_executor(workers, ray=ray, ray_address=ray_address, threads=threads, gpus=gpus)
+        with executor if owned else contextlib.nullcontext(executor):
+            description = executor.description
+            if progress:
+                print(f"running on {description}", file=stream, flush=True)
+            _execute(executor, tasks, waves, results, stores, stream if progress else None)
+    outcome = EvalOutcome(results=[r for r in results if r is not None], points=points, sequences=chosen,
+                          missing=missing, computed=len(todo), reused=len(tasks) - len(todo), files={},
+                          seconds=time.perf_counter() - start, executor=description)
+    outcome.files = report.write_report(out_dir, outcome, settings, base)
+    return outcome
+
+
+def _base_config(config: SLAMConfig | None, settings: EvalSettings, dataset: Dataset) -> tuple[SLAMConfig, bool]:
+    """The runs' common config, and whether frontend outputs are to be recorded."""
+    base = copy.deepcopy(config) if config is not None else SLAMConfig()
+    record = bool(base.output.cache_frontend)
+    base.output.cache_frontend = False  # recording is decided per run (RunTask.record_to)
+    if dataset.dense and settings.dense:
+        from .metrics import require_open3d
+
+        require_open3d()
+        base.output.save_keyframe_points = True
+    elif not settings.keep_keyframe_points:
+        base.output.save_keyframe_points = False  # nothing measures them
+    return base, record
+
+
+def _check_replay_dir(path: Path) -> Path:
+    if not path.is_dir():
+        raise UserError(f"--replay {path} is not a folder; pass the frontend_cache/ folder of an earlier evaluation")
+    if any(path.glob("submap_*.npz")):
+        raise UserError(f"--replay {path} is one run's recording; eval replays the frontend_cache/ folder of an "
+                        "earlier evaluation (OUT/frontend_cache), which holds one recording per sequence and settings")
+    return path
+
+
+def _build_tasks(points: list[GridPoint], point_configs: list[SLAMConfig], sequences: list[Sequence],
+                 settings: EvalSettings, out_dir: Path) -> list[RunTask]:
+    """One run per (grid point, sequence, seed), in that order, each with its fingerprint and cache key."""
     # what a run's numbers depend on besides its config (not the number of runs)
     measurement = {k: v for k, v in dataclasses.asdict(settings).items() if k not in ("runs", "dataset")}
-    tasks: list[RunTask] = []
+    tasks = []
     for point, point_config in zip(points, point_configs):
-        for sequence in chosen:
+        for sequence in sequences:
             for run in range(settings.runs):
                 run_config = seeded(point_config, run)
                 config_dict = config_to_dict(run_config)
@@ -579,75 +627,64 @@ def evaluate(
                     run_dir=str(out_dir / "runs" / point.slug / sequence.name.replace(os.sep, "-") / f"run-{run}"),
                     settings=settings, fingerprint=fingerprint, cache_key=frontend_cache_key(run_config, sequence),
                 ))
+    return tasks
 
-    finished = finished_runs(out_dir)
-    results: list[dict | None] = [_reuse(task, finished) for task in tasks]
-    todo = [i for i, r in enumerate(results) if r is None]
-    reused = len(tasks) - len(todo)
 
-    # Replay what is recorded; record each missing key once (first wave), replay it after.
-    first_wave, second_wave, keys_planned = [], [], set()
+def _plan_recordings(tasks: list[RunTask], todo: list[int], stores: list[Path],
+                     record_into: Path | None) -> tuple[list[int], list[int]]:
+    """Two waves of task indices: replays, recordings and uncached runs first; runs waiting for a recording after.
+
+    Sets ``replay_dir`` of the runs whose key is recorded, and ``record_to`` of the first run of
+    each key that is not (when recording).
+    """
+    first, second, planned = [], [], set()
     for i in todo:
         task = tasks[i]
         found = find_cache(stores, task.cache_key)
         digest = _digest(task.cache_key)
         if found is not None:
             task.replay_dir = str(found)
-            first_wave.append(i)
-        elif record and digest in keys_planned:
-            second_wave.append(i)
+            first.append(i)
+        elif record_into is not None and digest in planned:
+            second.append(i)
         else:
-            if record:
-                task.record_to = str(cache_folder(store, task.cache_key))
-                keys_planned.add(digest)
-            first_wave.append(i)
-    needs_model = any(tasks[i].replay_dir is None and tasks[i].config["frontend"] == "vggt" for i in todo)
-    _check_configs(point_configs, needs_model and not ray)
+            if record_into is not None:
+                task.record_to = str(cache_folder(record_into, task.cache_key))
+                planned.add(digest)
+            first.append(i)
+    return first, second
 
-    gpus = 0  # local: GPUs to spread workers over; Ray: each model run asks for one GPU
-    if needs_model and any(_needs_gpu(c) for c in point_configs):
-        if ray:
-            gpus = 1
-        else:
-            import torch
 
-            gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
-    if workers is None:
-        workers = max(1, min(len(todo) or 1, cpu_count() if ray else (gpus or cpu_count())))
-    description = "nothing to run"
-    if todo:
-        if progress:
-            replaying = sum(tasks[i].replay_dir is not None for i in todo)
-            print(f"evaluating {len(todo)} run(s) ({reused} reused) of {len(chosen)} sequence(s) x {len(points)} "
-                  f"setting(s) x {settings.runs} run(s) into {out_dir}: {replaying} replay a recording, "
-                  f"{len(keys_planned)} record one, {len(second_wave)} replay those afterwards", file=stream, flush=True)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        done = reused
-        owned = executor is None
-        if owned:
-            executor = make_executor(workers, ray=ray, ray_address=ray_address, threads=threads, gpus=gpus)
-        with executor if owned else contextlib.nullcontext(executor):
-            description = executor.description
-            if progress:
-                print(f"running on {description}", file=stream, flush=True)
-            for wave in (first_wave, second_wave):
-                for i in wave:
-                    task = tasks[i]
-                    task.threads = getattr(executor, "threads", 0)
-                    if task.replay_dir is None and task.record_to is None:
-                        found = find_cache(stores, task.cache_key)  # recorded by the first wave
-                        task.replay_dir = str(found) if found is not None else None
-                for index, outcome in _run_wave(executor, [tasks[i] for i in wave]):
-                    i = wave[index]
-                    results[i] = outcome if isinstance(outcome, dict) else _crashed(tasks[i], outcome)
-                    done += 1
-                    if progress:
-                        print(f"[{done}/{len(tasks)}] {report.one_line(results[i])}", file=stream, flush=True)
-    final = [r for r in results if r is not None]
-    outcome = EvalOutcome(results=final, points=points, sequences=chosen, missing=missing, computed=len(todo),
-                          reused=reused, files={}, seconds=time.perf_counter() - start, executor=description)
-    outcome.files = report.write_report(out_dir, outcome, settings, base)
-    return outcome
+def _gpus(configs: list[SLAMConfig], needs_model: bool, ray: bool) -> int:
+    """Local: GPUs to spread the workers over; Ray: 1 when each model run asks for a GPU."""
+    if not (needs_model and any(_needs_gpu(c) for c in configs)):
+        return 0
+    if ray:
+        return 1
+    import torch
+
+    return torch.cuda.device_count() if torch.cuda.is_available() else 0
+
+
+def _execute(executor: Executor, tasks: list[RunTask], waves: tuple[list[int], list[int]], results: list,
+             stores: list[Path], stream) -> None:
+    """Run the waves, filling ``results``; one progress line per finished run when ``stream`` is given."""
+    from .report import one_line
+
+    done = sum(r is not None for r in results)
+    for wave in waves:
+        for i in wave:
+            task = tasks[i]
+            task.threads = getattr(executor, "threads", 0)
+            if task.replay_dir is None and task.record_to is None:
+                found = find_cache(stores, task.cache_key)  # recorded by the first wave
+                task.replay_dir = str(found) if found is not None else None
+        for index, returned in _run_wave(executor, [tasks[i] for i in wave]):
+            i = wave[index]
+            results[i] = returned if isinstance(returned, dict) else _crashed(tasks[i], returned)
+            done += 1
+            if stream is not None:
+                print(f"[{done}/{len(tasks)}] {one_line(results[i])}", file=stream, flush=True)
 
 
 def _run_wave(executor: Executor, tasks: list[RunTask]):
