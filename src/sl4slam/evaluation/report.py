@@ -128,7 +128,11 @@ def point_table(summary: dict, point: str, sequences: list[str], metrics: list[t
         s = entry["sequences"][sequence]
         if s["failures"]:
             marks[sequence] = f"<sup>{len(notes) + 1}</sup>"
-            reasons = "; ".join(f"run {f['run']}: {f['reason']}" for f in s["failures"])
+            by_reason: dict[str, list[str]] = {}
+            for failure in s["failures"]:
+                by_reason.setdefault(failure["reason"], []).append(str(failure["run"]))
+            reasons = "; ".join(f"run{'s' if len(runs) > 1 else ''} {', '.join(runs)}: {reason}"
+                                for reason, runs in by_reason.items())
             notes.append(f"{len(notes) + 1}. {sequence}: {s['runs_ok']}/{s['runs']} runs succeeded — {reasons}")
     for key, label in rows:
         cells = []
@@ -168,7 +172,8 @@ def changed_settings(config: SLAMConfig) -> dict:
         return out
 
     defaults, current = flatten(config_to_dict(SLAMConfig())), flatten(config_to_dict(config))
-    return {k: v for k, v in current.items() if defaults.get(k) != v and k not in ("sim.seed", "alignment.seed")}
+    decided_by_the_evaluation = ("sim.seed", "alignment.seed", "output.save_keyframe_points", "output.cache_frontend")
+    return {k: v for k, v in current.items() if defaults.get(k) != v and k not in decided_by_the_evaluation}
 
 
 def markdown(outcome: "EvalOutcome", settings: "EvalSettings", config: SLAMConfig, summary: dict) -> str:
