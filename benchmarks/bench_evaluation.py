@@ -28,6 +28,7 @@ import platform
 import shutil
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -109,7 +110,8 @@ def scaling(root: Path, names: list[str], config, runs: int, repeats: int) -> li
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--work", default="bench_evaluation_work", help="folder for the datasets and evaluations")
+    parser.add_argument("--work", default=str(Path(tempfile.gettempdir()) / "sl4slam_bench_evaluation"),
+                        help="folder for the datasets and evaluations (datasets are reused)")
     parser.add_argument("--sequences", type=int, default=3, help="synthetic sequences per layout")
     parser.add_argument("--frames", type=int, default=200)
     parser.add_argument("--width", type=int, default=128)
