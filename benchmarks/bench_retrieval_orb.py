@@ -26,6 +26,7 @@ import numpy as np
 from sl4slam.config import KeyframeConfig, RetrievalConfig
 from sl4slam.keyframes import KeyframeSelector
 from sl4slam.retrieval.orb import OrbRetrieval
+from sl4slam.io.memory import frames_from_images as as_frames
 
 REPO = Path(__file__).resolve().parents[1]
 TUM = REPO.parent / "shared" / "data" / "tum_rgbd_fr1_xyz_first37"
@@ -84,7 +85,7 @@ def bench_retrieval(frames: list[np.ndarray], database_sizes: tuple[int, ...]) -
     config = RetrievalConfig()
     retrieval = OrbRetrieval(config)
     stored_tum = [0, 12, 24, 36]
-    retrieval.add(stored_tum, [frames[i] for i in stored_tum], submap_id=0)
+    retrieval.add(as_frames(stored_tum, [frames[i] for i in stored_tum]), submap_id=0)
     query_frames = [i for i in range(1, len(frames)) if i not in stored_tum][:BATCH]
     query_images = [frames[i] for i in query_frames]
     rows = []
@@ -94,18 +95,18 @@ def bench_retrieval(frames: list[np.ndarray], database_sizes: tuple[int, ...]) -
         while len(retrieval) < size:
             chunk = min(BATCH, size - len(retrieval))
             seeds = range(next_seed, next_seed + chunk)
-            retrieval.add([100_000 + s for s in seeds], [distractor(s) for s in seeds], submap_id=submap_id)
+            retrieval.add(as_frames([100_000 + s for s in seeds], [distractor(s) for s in seeds]), submap_id=submap_id)
             next_seed += chunk
             submap_id += 1
         query_submap = submap_id + config.tau_interval + 1  # the whole database is eligible
 
         def one_query() -> None:
             retrieval._pending.clear()  # measure extraction too, as in the pipeline
-            retrieval.query(query_frames[:1], query_images[:1], query_submap, max_results=1)
+            retrieval.query(as_frames(query_frames[:1], query_images[:1]), query_submap, max_results=1)
 
         def batch_query() -> list:
             retrieval._pending.clear()
-            return retrieval.query(query_frames, query_images, query_submap, max_results=len(query_frames))
+            return retrieval.query(as_frames(query_frames, query_images), query_submap, max_results=len(query_frames))
 
         def ranking_only() -> None:
             retrieval.similarity(features)

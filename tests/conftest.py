@@ -16,3 +16,12 @@ def shared_dir() -> Path:
     if not SHARED_DIR.is_dir():
         pytest.skip(f"reference data folder {SHARED_DIR} is absent (only a development checkout has it)")
     return SHARED_DIR
+
+
+FIXTURES_DIR = Path(__file__).resolve().parent / "fixtures"
+
+
+@pytest.fixture(scope="session")
+def fixtures_dir() -> Path:
+    """The compact model fixtures vendored with the tests (``tests/fixtures/README.md``): always present."""
+    return FIXTURES_DIR

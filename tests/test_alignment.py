@@ -13,7 +13,7 @@ from sl4slam.alignment import (
     normalize_points,
     sim3_from_shared_frame,
 )
-from sl4slam.alignment.ransac import HYPOTHESIS_BATCH, hypotheses_needed, ransac_best
+from sl4slam.alignment.ransac import hypotheses_needed, ransac_best
 from sl4slam.config import AlignmentConfig
 from sl4slam.synthetic.correspondences import frame_correspondences, near_identity_sl4, random_rotation
 from sl4slam.geometry import apply_transform, normalize_sl4, se3_inverse
@@ -151,8 +151,8 @@ def test_ransac_draws_hypotheses_adaptively() -> None:
         assert quick.extras["hypotheses"] <= drawn[outliers]
     # clean points: the first batch holds an all-inlier sample; ~60 % clustered outliers
     # (w^5 ~ 1 %) need several batches, and never more than the paper's 300
-    assert drawn[0.0] == HYPOTHESIS_BATCH
-    assert HYPOTHESIS_BATCH < drawn[0.6] <= 300
+    assert drawn[0.0] == AlignmentConfig().hypothesis_batch
+    assert AlignmentConfig().hypothesis_batch < drawn[0.6] <= 300
 
 
 def test_early_stop_needs_well_spread_inliers() -> None:
@@ -170,7 +170,7 @@ def test_early_stop_needs_well_spread_inliers() -> None:
         seen.append(len(inliers_b))
         return False
 
-    for hook, drawn in ((None, HYPOTHESIS_BATCH), (lambda inliers_b: True, HYPOTHESIS_BATCH), (refuse, 300)):
+    for hook, drawn in ((None, AlignmentConfig().hypothesis_batch), (lambda inliers_b: True, AlignmentConfig().hypothesis_batch), (refuse, 300)):
         _, stats = ransac_best(X_a_n, X_b_n, minimal_sl4_batch, 5, threshold, config, np.random.default_rng(0), hook)
         assert stats["hypotheses"] == drawn
         assert stats["stopped_early"] == (drawn < 300)

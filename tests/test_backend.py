@@ -182,7 +182,7 @@ def test_loop_closure_reduces_sl4_drift():
     assert error_with < 0.6 * error_without
     # The loop was absorbed: the last node moved most of the way to the truth.
     assert np.linalg.norm(with_loop[20] - truth[20]) < 0.3 * np.linalg.norm(without[20] - truth[20])
-    assert backend.last_update_seconds > 0.0 and backend.num_loops == 1
+    assert backend.num_loops == 1
     # ... and fully: batch Levenberg-Marquardt on the same graph from the odometry guess agrees.
     graph, initial = backend.factor_graph(), gtsam.Values()
     for k, H in without.items():

@@ -10,6 +10,7 @@ from sl4slam.config import RetrievalConfig
 from sl4slam.errors import UserError
 from sl4slam.retrieval.orb import OrbRetrieval, match_descriptors
 from sl4slam.types import LoopCandidate, Retrieval
+from sl4slam.io.memory import frames_from_images as as_frames
 
 DISTRACTOR_BASE = 1000
 
@@ -52,7 +53,7 @@ def test_is_a_retrieval():
     assert isinstance(retrieval, Retrieval)
     assert retrieval.name == "orb"
     assert len(retrieval) == 0
-    assert retrieval.query([0], [random_texture(0)], submap_id=10, max_results=1) == []
+    assert retrieval.query(as_frames([0], [random_texture(0)]), submap_id=10, max_results=1) == []
 
 
 def test_match_descriptors_finds_planted_pairs():
@@ -96,34 +97,34 @@ def test_extracted_features_are_compact(tum):
 def test_revisit_is_found(tum, distractors):
     config = RetrievalConfig()
     retrieval = OrbRetrieval(config)
-    retrieval.add([0], [tum[0]], submap_id=0)
-    retrieval.add(list(range(DISTRACTOR_BASE, DISTRACTOR_BASE + 3)), distractors[:3], submap_id=0)
-    retrieval.add(list(range(DISTRACTOR_BASE + 3, DISTRACTOR_BASE + 6)), distractors[3:], submap_id=1)
+    retrieval.add(as_frames([0], [tum[0]]), submap_id=0)
+    retrieval.add(as_frames(list(range(DISTRACTOR_BASE, DISTRACTOR_BASE + 3)), distractors[:3]), submap_id=0)
+    retrieval.add(as_frames(list(range(DISTRACTOR_BASE + 3, DISTRACTOR_BASE + 6)), distractors[3:]), submap_id=1)
     assert len(retrieval) == 7
     for query_frame in (3, 20):
-        found = retrieval.query([query_frame], [tum[query_frame]], submap_id=3, max_results=1)
+        found = retrieval.query(as_frames([query_frame], [tum[query_frame]]), submap_id=3, max_results=1)
         assert len(found) == 1
         candidate = found[0]
         assert (candidate.query_frame, candidate.match_frame, candidate.match_submap) == (query_frame, 0, 0)
         assert 0.0 <= candidate.distance < 1.0 - config.orb_min_inliers / config.orb_features
     # A nearer view verifies more matches, so it is closer.
-    near = retrieval.query([3], [tum[3]], submap_id=3, max_results=1)[0]
-    far = retrieval.query([20], [tum[20]], submap_id=3, max_results=1)[0]
+    near = retrieval.query(as_frames([3], [tum[3]]), submap_id=3, max_results=1)[0]
+    far = retrieval.query(as_frames([20], [tum[20]]), submap_id=3, max_results=1)[0]
     assert near.distance < far.distance
 
 
 def test_verification_stops_once_enough_queries_match(tum, distractors, monkeypatch):
     retrieval = OrbRetrieval(RetrievalConfig(orb_candidates=5))
-    retrieval.add([0, 36], [tum[0], tum[36]], submap_id=0)
-    retrieval.add(list(range(DISTRACTOR_BASE, DISTRACTOR_BASE + 4)), distractors[:4], submap_id=1)
+    retrieval.add(as_frames([0, 36], [tum[0], tum[36]]), submap_id=0)
+    retrieval.add(as_frames(list(range(DISTRACTOR_BASE, DISTRACTOR_BASE + 4)), distractors[:4]), submap_id=1)
     verified: list[int] = []
     verify = retrieval.verify
     monkeypatch.setattr(retrieval, "verify", lambda query, position: verified.append(position) or verify(query, position))
     queries, images = [2, 34], [tum[2], tum[34]]
-    one = retrieval.query(queries, images, submap_id=4, max_results=1)
+    one = retrieval.query(as_frames(queries, images), submap_id=4, max_results=1)
     assert len(one) == 1 and len(verified) == 1  # the most similar pair verified: nothing more spent
     verified.clear()
-    both = retrieval.query(queries, images, submap_id=4, max_results=5)
+    both = retrieval.query(as_frames(queries, images), submap_id=4, max_results=5)
     assert len(verified) == 5  # every query may still match: the whole budget
     assert {(c.query_frame, c.match_frame) for c in both} == {(2, 0), (34, 36)}
     assert one[0] in both
@@ -131,27 +132,27 @@ def test_verification_stops_once_enough_queries_match(tum, distractors, monkeypa
 
 def test_warped_copy_is_found(tum, distractors):
     retrieval = OrbRetrieval(RetrievalConfig())
-    retrieval.add([DISTRACTOR_BASE, DISTRACTOR_BASE + 1], distractors[:2], submap_id=0)
-    retrieval.add([0], [tum[0]], submap_id=1)
-    found = retrieval.query([99], [mild_warp(tum[0])], submap_id=5, max_results=3)
+    retrieval.add(as_frames([DISTRACTOR_BASE, DISTRACTOR_BASE + 1], distractors[:2]), submap_id=0)
+    retrieval.add(as_frames([0], [tum[0]]), submap_id=1)
+    found = retrieval.query(as_frames([99], [mild_warp(tum[0])]), submap_id=5, max_results=3)
     assert [(c.query_frame, c.match_frame, c.match_submap) for c in found] == [(99, 0, 1)]
 
 
 def test_unrelated_images_are_rejected(tum, distractors):
     retrieval = OrbRetrieval(RetrievalConfig())
-    retrieval.add([0, 18, 36], [tum[0], tum[18], tum[36]], submap_id=0)
-    retrieval.add(list(range(DISTRACTOR_BASE, DISTRACTOR_BASE + 4)), distractors[:4], submap_id=1)
+    retrieval.add(as_frames([0, 18, 36], [tum[0], tum[18], tum[36]]), submap_id=0)
+    retrieval.add(as_frames(list(range(DISTRACTOR_BASE, DISTRACTOR_BASE + 4)), distractors[:4]), submap_id=1)
     unrelated = distractors[4:] + [random_texture(100, (600, 500, 3))]
     for offset, image in enumerate(unrelated):
-        assert retrieval.query([2000 + offset], [image], submap_id=9, max_results=5) == []
+        assert retrieval.query(as_frames([2000 + offset], [image]), submap_id=9, max_results=5) == []
     # Same texture statistics, different content: the verification sees almost nothing.
     query_features = retrieval.extract(distractors[5])
     inliers = [retrieval.verify(query_features, position) for position in range(len(retrieval))]
     assert max(inliers) < RetrievalConfig().orb_min_inliers // 2
     # A TUM frame is not matched to a texture database.
     textures_only = OrbRetrieval(RetrievalConfig())
-    textures_only.add(list(range(DISTRACTOR_BASE, DISTRACTOR_BASE + 6)), distractors, submap_id=0)
-    assert textures_only.query([3], [tum[3]], submap_id=9, max_results=5) == []
+    textures_only.add(as_frames(list(range(DISTRACTOR_BASE, DISTRACTOR_BASE + 6)), distractors), submap_id=0)
+    assert textures_only.query(as_frames([3], [tum[3]]), submap_id=9, max_results=5) == []
 
 
 def test_unrelated_natural_image_is_rejected(tum):
@@ -163,36 +164,36 @@ def test_unrelated_natural_image_is_rejected(tum):
         pytest.skip("matplotlib sample image absent")
     portrait = cv2.cvtColor(cv2.imdecode(data, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     retrieval = OrbRetrieval(RetrievalConfig())
-    retrieval.add([0, 18, 36], [tum[0], tum[18], tum[36]], submap_id=0)
-    assert retrieval.query([500], [portrait], submap_id=9, max_results=5) == []
-    retrieval.add([500], [portrait], submap_id=1)
-    assert retrieval.query([3], [tum[3]], submap_id=9, max_results=5)[0].match_frame == 0
+    retrieval.add(as_frames([0, 18, 36], [tum[0], tum[18], tum[36]]), submap_id=0)
+    assert retrieval.query(as_frames([500], [portrait]), submap_id=9, max_results=5) == []
+    retrieval.add(as_frames([500], [portrait]), submap_id=1)
+    assert retrieval.query(as_frames([3], [tum[3]]), submap_id=9, max_results=5)[0].match_frame == 0
 
 
 def test_tau_interval_excludes_recent_submaps(tum):
     retrieval = OrbRetrieval(RetrievalConfig(tau_interval=2))
-    retrieval.add([0], [tum[0]], submap_id=1)
+    retrieval.add(as_frames([0], [tum[0]]), submap_id=1)
     # Submap 1 is eligible from submap 4 on: 1 <= submap_id - 1 - 2.
     for submap_id in (1, 2, 3):
-        assert retrieval.query([3], [tum[3]], submap_id=submap_id, max_results=1) == []
-    assert retrieval.query([3], [tum[3]], submap_id=4, max_results=1)[0].match_frame == 0
+        assert retrieval.query(as_frames([3], [tum[3]]), submap_id=submap_id, max_results=1) == []
+    assert retrieval.query(as_frames([3], [tum[3]]), submap_id=4, max_results=1)[0].match_frame == 0
 
     no_gap = OrbRetrieval(RetrievalConfig(tau_interval=0))
-    no_gap.add([0], [tum[0]], submap_id=1)
-    assert no_gap.query([3], [tum[3]], submap_id=1, max_results=1) == []
-    assert no_gap.query([3], [tum[3]], submap_id=2, max_results=1)[0].match_submap == 1
+    no_gap.add(as_frames([0], [tum[0]]), submap_id=1)
+    assert no_gap.query(as_frames([3], [tum[3]]), submap_id=1, max_results=1) == []
+    assert no_gap.query(as_frames([3], [tum[3]]), submap_id=2, max_results=1)[0].match_submap == 1
 
 
 def test_results_are_sorted_truncated_and_deterministic(tum, distractors):
     def run() -> tuple[list[LoopCandidate], list[LoopCandidate]]:
         retrieval = OrbRetrieval(RetrievalConfig(), seed=5)
-        retrieval.add([0, DISTRACTOR_BASE], [tum[0], distractors[0]], submap_id=0)
-        retrieval.add([12, DISTRACTOR_BASE + 1], [tum[12], distractors[1]], submap_id=1)
+        retrieval.add(as_frames([0, DISTRACTOR_BASE], [tum[0], distractors[0]]), submap_id=0)
+        retrieval.add(as_frames([12, DISTRACTOR_BASE + 1], [tum[12], distractors[1]]), submap_id=1)
         queries = [30, 2, 24, DISTRACTOR_BASE + 2]
         images = [tum[30], tum[2], tum[24], distractors[2]]
-        every = retrieval.query(queries, images, submap_id=4, max_results=10)
-        best_two = retrieval.query(queries, images, submap_id=4, max_results=2)
-        retrieval.add(queries, images, submap_id=4)  # reuses the query's features
+        every = retrieval.query(as_frames(queries, images), submap_id=4, max_results=10)
+        best_two = retrieval.query(as_frames(queries, images), submap_id=4, max_results=2)
+        retrieval.add(as_frames(queries, images), submap_id=4)  # reuses the query's features
         assert len(retrieval) == 8
         return every, best_two
 
@@ -204,23 +205,23 @@ def test_results_are_sorted_truncated_and_deterministic(tum, distractors):
     assert {c.match_frame for c in every} <= {0, 12}
     assert run() == (every, best_two)
     retrieval = OrbRetrieval(RetrievalConfig())
-    retrieval.add([0], [tum[0]], submap_id=0)
-    assert retrieval.query([2], [tum[2]], submap_id=4, max_results=0) == []
+    retrieval.add(as_frames([0], [tum[0]]), submap_id=0)
+    assert retrieval.query(as_frames([2], [tum[2]]), submap_id=4, max_results=0) == []
 
 
 def test_add_reuses_the_query_features_only_for_the_same_image(tum):
     retrieval = OrbRetrieval(RetrievalConfig())
-    retrieval.query([7], [tum[7]], submap_id=0, max_results=1)
+    retrieval.query(as_frames([7], [tum[7]]), submap_id=0, max_results=1)
     extracted = retrieval.describe_seconds
-    retrieval.add([7], [tum[7].copy()], submap_id=0)  # equal pixels, another array: reused
+    retrieval.add(as_frames([7], [tum[7].copy()]), submap_id=0)  # equal pixels, another array: reused
     assert retrieval.describe_seconds == extracted
     stored = retrieval._descriptors[-1]
 
     changed = tum[8].copy()
-    retrieval.query([9], [changed], submap_id=1, max_results=1)
+    retrieval.query(as_frames([9], [changed]), submap_id=1, max_results=1)
     changed[:] = tum[20]  # modified in place between query and add: extracted again
     extracted = retrieval.describe_seconds
-    retrieval.add([9], [changed], submap_id=1)
+    retrieval.add(as_frames([9], [changed]), submap_id=1)
     assert retrieval.describe_seconds > extracted
     assert np.array_equal(retrieval._descriptors[-1], retrieval.extract(tum[20]).descriptors)
     assert not np.array_equal(retrieval._descriptors[-1], stored)
@@ -229,9 +230,9 @@ def test_add_reuses_the_query_features_only_for_the_same_image(tum):
 def test_bad_input_is_a_user_error(tum):
     retrieval = OrbRetrieval(RetrievalConfig())
     with pytest.raises(UserError):
-        retrieval.add([0, 1], [tum[0]], submap_id=0)
+        retrieval.add(as_frames([0, 1], [tum[0]]), submap_id=0)
     with pytest.raises(UserError):
-        retrieval.add([0], [tum[0].astype(np.float32)], submap_id=0)
+        retrieval.add(as_frames([0], [tum[0].astype(np.float32)]), submap_id=0)
     with pytest.raises(UserError):
         OrbRetrieval(RetrievalConfig(orb_candidates=0))
 
@@ -258,9 +259,9 @@ def test_similarity_matches_dense_tf_idf():
         a, b = tf * idf, query_tf * idf
         return (a @ b.T) / (np.linalg.norm(a, axis=1)[:, None] * np.linalg.norm(b, axis=1)[None, :])
 
-    retrieval.add(list(range(70)), images[:70], submap_id=0)
+    retrieval.add(as_frames(list(range(70)), images[:70]), submap_id=0)
     np.testing.assert_allclose(retrieval.similarity(queries), dense_reference(70), rtol=1e-4, atol=1e-6)
-    retrieval.add(list(range(70, 75)), images[70:], submap_id=1)  # scored row-wise, after the inverted file
+    retrieval.add(as_frames(list(range(70, 75)), images[70:]), submap_id=1)  # scored row-wise, after the inverted file
     similarity = retrieval.similarity(queries)
     np.testing.assert_allclose(similarity, dense_reference(75, idf_count=70), rtol=1e-4, atol=1e-6)
     assert int(np.argmax(similarity[:, 0])) == 3 and similarity[3, 0] == pytest.approx(1.0, abs=1e-5)
@@ -273,10 +274,10 @@ def test_coarse_ranking_keeps_the_revisit_in_a_large_database():
 
     retrieval = OrbRetrieval(RetrievalConfig(orb_features=500))
     images = [random_texture(seed, (240, 320, 3)) for seed in range(300, 300 + 4 * COARSE_CANDIDATES + 8)]
-    retrieval.add(list(range(len(images))), images, submap_id=0)
+    retrieval.add(as_frames(list(range(len(images))), images), submap_id=0)
     target = 2 * COARSE_CANDIDATES + 5
     query = mild_warp(images[target])
-    found = retrieval.query([10_000], [query], submap_id=5, max_results=1)
+    found = retrieval.query(as_frames([10_000], [query]), submap_id=5, max_results=1)
     assert [c.match_frame for c in found] == [target]
     features = [retrieval.extract(query)]
     rows = np.arange(len(images))

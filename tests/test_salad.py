@@ -26,6 +26,7 @@ from sl4slam.models.salad import (
 )
 from sl4slam.retrieval.salad import DescriptorIndex, SaladRetrieval
 from sl4slam.types import Retrieval
+from sl4slam.io.memory import frames_from_images as as_frames
 
 TINY_SIZES = dict(embed_dim=64, depth=2, num_heads=2, num_clusters=8, cluster_dim=16, token_dim=32)
 
@@ -42,14 +43,30 @@ def salad_dir(shared_dir: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def tiny_model(salad_dir: Path) -> SaladModel:
+def tiny_dir(fixtures_dir: Path) -> Path:
+    """The vendored tiny case: weights, the first image of each batch, its reference outputs."""
+    return fixtures_dir / "salad_tiny"
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tiny_dir: Path) -> SaladModel:
     model = SaladModel(**TINY_SIZES).eval()
-    model.load_state_dict(load_file(str(salad_dir / "tiny" / "state_dict.safetensors")), strict=True)
+    model.load_state_dict(load_file(str(tiny_dir / "state_dict.safetensors")), strict=True)
     return model
 
 
 @pytest.fixture(scope="module")
-def tiny_io(salad_dir: Path) -> tuple[dict, dict]:
+def tiny_io(tiny_dir: Path) -> tuple[dict, dict]:
+    """Inputs (float images derived from the uint8 ones, bitwise as the reference made them) and outputs."""
+    inputs = load_file(str(tiny_dir / "inputs.safetensors"))
+    inputs["images"] = normalize_uint8_images(inputs["images_uint8"].numpy())
+    inputs["images_224"] = normalize_uint8_images(inputs["images_224_uint8"].numpy())
+    return inputs, load_file(str(tiny_dir / "outputs.safetensors"))
+
+
+@pytest.fixture(scope="module")
+def full_tiny_io(salad_dir: Path) -> tuple[dict, dict]:
+    """The full tiny case of the reference fixtures (preprocessing examples included)."""
     return (
         load_file(str(salad_dir / "tiny" / "inputs.safetensors")),
         load_file(str(salad_dir / "tiny" / "outputs.safetensors")),
@@ -155,7 +172,7 @@ def test_full_model_state_dict_equals_checkpoint_manifest(salad_dir: Path) -> No
 
 
 @pytest.mark.parametrize("prefix, image_key", [("", "images"), ("s224.", "images_224")])
-def test_tiny_model_matches_reference_outputs(tiny_model, tiny_io, salad_dir, prefix, image_key) -> None:
+def test_tiny_model_matches_reference_outputs(tiny_model, tiny_io, tiny_dir, prefix, image_key) -> None:
     inputs, outputs = tiny_io
     with torch.no_grad():
         tokens = tiny_model.backbone.model.prepare_tokens(inputs[image_key])
@@ -172,7 +189,7 @@ def test_tiny_model_matches_reference_outputs(tiny_model, tiny_io, salad_dir, pr
     torch.testing.assert_close(stages["aggregated"], outputs[prefix + "agg.aggregated"], **close)
     torch.testing.assert_close(stages["descriptor"], outputs[prefix + "descriptor"], atol=1e-6, rtol=0)
     # the float64 run of the reference agrees too
-    reference_f64 = load_file(str(salad_dir / "tiny" / "outputs_ref_f64.safetensors"))
+    reference_f64 = load_file(str(tiny_dir / "outputs_ref_f64.safetensors"))
     torch.testing.assert_close(stages["descriptor"].double(), reference_f64[prefix + "descriptor"], atol=1e-6, rtol=0)
     # layout: [L2(token) (32) | intra-normalized clusters, channel-major (16 x 8)], all over sqrt(9)
     descriptor = stages["descriptor"]
@@ -186,8 +203,8 @@ def test_tiny_model_matches_reference_outputs(tiny_model, tiny_io, salad_dir, pr
 # ----------------------------------------------------------------------------- preprocessing
 
 
-def test_preprocessing_matches_reference(tiny_model, tiny_io) -> None:
-    inputs, outputs = tiny_io
+def test_preprocessing_matches_reference(tiny_model, full_tiny_io) -> None:
+    inputs, outputs = full_tiny_io
     assert torch.equal(normalize_uint8_images(inputs["images_uint8"].numpy()), inputs["images"])
     assert torch.equal(normalize_uint8_images(inputs["images_224_uint8"].numpy()), inputs["images_224"])
     raw = inputs["preproc.raw_uint8_hwc"].numpy()
@@ -209,10 +226,10 @@ def test_preprocessing_matches_reference(tiny_model, tiny_io) -> None:
 
 
 @pytest.mark.parametrize("form", ["plain", "lightning", "safetensors"])
-def test_read_state_dict_accepts_checkpoint_forms(tmp_path, salad_dir, tiny_model, tiny_io, form) -> None:
-    state = load_file(str(salad_dir / "tiny" / "state_dict.safetensors"))
+def test_read_state_dict_accepts_checkpoint_forms(tmp_path, tiny_dir, tiny_model, tiny_io, form) -> None:
+    state = load_file(str(tiny_dir / "state_dict.safetensors"))
     if form == "safetensors":
-        path = salad_dir / "tiny" / "state_dict.safetensors"
+        path = tiny_dir / "state_dict.safetensors"
     else:
         path = tmp_path / "salad.ckpt"
         torch.save({"state_dict": state, "epoch": 1, "global_step": 10} if form == "lightning" else state, str(path))
@@ -251,9 +268,9 @@ def test_load_salad_offline_download_failure_says_where_to_put_the_file(tmp_path
     assert len(attempts) == 1
 
 
-def test_load_salad_rejects_a_foreign_checkpoint(tmp_path, salad_dir) -> None:
+def test_load_salad_rejects_a_foreign_checkpoint(tmp_path, tiny_dir) -> None:
     path = tmp_path / "tiny.ckpt"
-    torch.save(load_file(str(salad_dir / "tiny" / "state_dict.safetensors")), str(path))
+    torch.save(load_file(str(tiny_dir / "state_dict.safetensors")), str(path))
     with pytest.raises(UserError, match="not a SALAD .* wrong shapes"):
         load_salad(path)
     garbage = tmp_path / "garbage.ckpt"
@@ -340,8 +357,8 @@ def test_salad_retrieval_follows_the_query_semantics(tiny_model) -> None:
     retrieval.describe = counting_describe  # type: ignore[method-assign]
     for submap in range(4):  # submaps 0..3, three keyframes each
         frames = [3 * submap + i for i in range(3)]
-        assert retrieval.query(frames, [images[f] for f in frames], submap, 1) == [] or submap >= 3
-        retrieval.add(frames, [images[f] for f in frames], submap)
+        assert retrieval.query(as_frames(frames, [images[f] for f in frames]), submap, 1) == [] or submap >= 3
+        retrieval.add(as_frames(frames, [images[f] for f in frames]), submap)
     assert calls == [3, 3, 3, 3]  # query's descriptors are reused by add
     np.testing.assert_allclose(
         retrieval.index._vectors[:12].float().numpy(), tiny_model.describe(images, 224), atol=1e-3
@@ -349,23 +366,23 @@ def test_salad_retrieval_follows_the_query_semantics(tiny_model) -> None:
 
     # a revisit of frame 4 (submap 1) from submap 4: eligible submaps are <= 4 - 1 - 2 = 1
     revisit = [images[4].copy(), images[10].copy()]
-    found = retrieval.query([100, 101], revisit, 4, max_results=5)
+    found = retrieval.query(as_frames([100, 101], revisit), 4, max_results=5)
     assert found[0].query_frame == 100 and found[0].match_frame == 4 and found[0].match_submap == 1
     assert found[0].distance < 1e-2
     assert all(c.match_submap <= 1 and c.distance < 0.8 for c in found)
     assert [c.distance for c in found] == sorted(c.distance for c in found)
     # frame 10 sits in submap 3, excluded at submap 4, so query 101 cannot match it
     assert all(c.match_frame != 10 for c in found)
-    assert len(retrieval.query([100, 101], revisit, 4, max_results=1)) == 1
+    assert len(retrieval.query(as_frames([100, 101], revisit), 4, max_results=1)) == 1
     # from submap 6, submap 3 becomes eligible and frame 10 is found
-    later = retrieval.query([100, 101], revisit, 6, max_results=2)
+    later = retrieval.query(as_frames([100, 101], revisit), 6, max_results=2)
     assert {(c.query_frame, c.match_frame) for c in later} == {(100, 4), (101, 10)}
     # a tight threshold rejects everything but the exact revisits
     strict = SaladRetrieval(RetrievalConfig(kind="salad", tau_desc=1e-2), model=tiny_model)
     strict.index = retrieval.index
-    assert {(c.query_frame, c.match_frame) for c in strict.query([100, 101], revisit, 6, 5)} == {(100, 4), (101, 10)}
+    assert {(c.query_frame, c.match_frame) for c in strict.query(as_frames([100, 101], revisit), 6, 5)} == {(100, 4), (101, 10)}
     strict.config = RetrievalConfig(kind="salad", tau_desc=0.0)
-    assert strict.query([100, 101], revisit, 6, 5) == []
+    assert strict.query(as_frames([100, 101], revisit), 6, 5) == []
 
 
 # ----------------------------------------------------------------------------- full size (slow)
@@ -402,8 +419,8 @@ def test_salad_retrieval_end_to_end_with_random_checkpoint(tmp_path, lightning) 
     retrieval = make_retrieval(config)
     assert isinstance(retrieval, SaladRetrieval)
     images = random_images(4, seed=13)
-    retrieval.add([0, 1], images[:2], 0)
-    retrieval.add([2, 3], images[2:], 1)
-    found = retrieval.query([50], [images[1]], 2, max_results=1)
+    retrieval.add(as_frames([0, 1], images[:2]), 0)
+    retrieval.add(as_frames([2, 3], images[2:]), 1)
+    found = retrieval.query(as_frames([50], [images[1]]), 2, max_results=1)
     assert len(found) == 1 and found[0].match_frame == 1 and found[0].distance < 1e-2
     assert retrieval.index._vectors.shape[1] == 8448

@@ -12,6 +12,7 @@ import torch
 from sl4slam.config import VGGTConfig
 from sl4slam.errors import MissingWeightsError, UserError
 from sl4slam.frontend.vggt import VGGTFrontend, resolve_compute_dtype, resolve_device
+from sl4slam.io import read_tum_trajectory
 from sl4slam.models.vggt.model import VGGT, VGGTModelConfig, init_random_weights
 from sl4slam.models.vggt.pose_encoding import pose_encoding_to_extri_intri
 from sl4slam.models.vggt.preprocess import preprocess_images, to_uint8_rgb
@@ -143,3 +144,44 @@ def test_cli_runs_end_to_end_with_a_random_checkpoint(tmp_path):
     assert (out / "summary.json").is_file()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["counts"]["submaps"] >= 1
+
+
+def test_a_run_with_garbage_model_output_completes(tmp_path, shared_dir):
+    """Random weights predict garbage (here: fields of view beyond 180 degrees, i.e. negative focal
+    lengths, random poses and depths): every edge is refused or weakened, submaps start new segments,
+    loops are rejected, and the run still completes with finite outputs on the real TUM excerpt."""
+    from sl4slam.config import SLAMConfig
+    from sl4slam.runner import run_slam
+
+    torch.manual_seed(1)
+    model = init_random_weights(VGGT(SMALL_CONFIG), seed=1)
+    with torch.no_grad():  # the four camera-head iterations add up to a 4-radian field of view
+        model.camera_head.pose_branch.fc2.bias[7:9] = 1.0
+    weights = save_checkpoint(model.state_dict(), tmp_path / "garbage.safetensors", SMALL_CONFIG)
+    config = SLAMConfig()
+    config.vggt.weights, config.vggt.device = str(weights), "cpu"
+    config.submap.size = 2
+    config.retrieval.kind, config.retrieval.tau_interval = "orb", 0
+    summary = run_slam(shared_dir / "data" / "tum_rgbd_fr1_xyz_first37", tmp_path / "out", config, progress=False)
+    assert summary["status"] == "complete" and summary["counts"]["keyframes"] >= 4
+    edges = summary["edges"]
+    assert edges and all(e["kind"] != "odometry" or not e["accepted"] or e.get("fallback") or e["inlier_ratio"] >= 0.1
+                         for e in edges)
+    assert summary["counts"]["segments"] + sum(1 for e in edges if e["kind"] == "odometry" and e["accepted"]) \
+        == summary["counts"]["submaps"]
+    assert any(s["reason"] and "focal" in s["reason"] for s in summary["segments"])
+    stamps, poses = read_tum_trajectory(tmp_path / "out" / "trajectory.txt")
+    assert len(stamps) == summary["counts"]["keyframes"] and np.isfinite(poses).all()
+
+
+def test_a_frontend_with_non_finite_output_ends_the_run_clearly(tmp_path, shared_dir):
+    """Output that cannot be used at all (an infinite focal length on every submap) is a broken
+    frontend, not a bad submap: the run ends with one line saying so, not a traceback."""
+    from sl4slam.cli import main
+
+    weights = save_checkpoint(init_random_weights(VGGT(SMALL_CONFIG), seed=1).state_dict(), tmp_path / "zero_fov.safetensors",
+                              SMALL_CONFIG)  # the field-of-view activation is a ReLU: random weights give 0
+    code = main(["run", str(shared_dir / "data" / "tum_rgbd_fr1_xyz_first37"), "--out", str(tmp_path / "out"),
+                 "--weights", str(weights), "--device", "cpu", "--submap-size", "2", "--retrieval", "none", "--quiet"])
+    assert code == 1
+    assert not (tmp_path / "out" / "trajectory.txt").exists()

@@ -57,8 +57,7 @@ def test_config_inferred_from_manifest_shapes(manifest):
     load_state_dict_into(model, state_dict, assign=True)  # strict apart from track_head.*
 
 
-def _tiny(shared_dir, name):
-    folder = shared_dir / "fixtures/vggt/tiny" / name
+def _tiny(folder):
     config = VGGTModelConfig.from_reference_config(json.loads((folder / "config.json").read_text()))
     state_dict = load_file(str(folder / "state_dict.safetensors"))
     inputs = load_file(str(folder / "inputs.safetensors"))
@@ -68,9 +67,14 @@ def _tiny(shared_dir, name):
 
 
 @pytest.fixture(scope="module", params=["tiny_a", "tiny_b"])
-def tiny_run(request, shared_dir):
+def tiny_run(request, fixtures_dir):
+    """tiny_b is vendored with the tests; tiny_a (larger) comes from the reference fixtures when present."""
     torch.manual_seed(0)
-    config, state_dict, inputs, outputs, intermediates = _tiny(shared_dir, request.param)
+    if request.param == "tiny_b":
+        folder = fixtures_dir / "vggt_tiny_b"
+    else:
+        folder = request.getfixturevalue("shared_dir") / "fixtures/vggt/tiny" / request.param
+    config, state_dict, inputs, outputs, intermediates = _tiny(folder)
     model = VGGT(config).eval()
     load_state_dict_into(model, state_dict)
     captured = {}
@@ -116,8 +120,8 @@ def test_tiny_intermediates_match_reference(tiny_run):
         )
 
 
-def test_dropping_unused_layers_changes_nothing(shared_dir):
-    config, state_dict, inputs, _, _ = _tiny(shared_dir, "tiny_b")
+def test_dropping_unused_layers_changes_nothing(fixtures_dir):
+    config, state_dict, inputs, _, _ = _tiny(fixtures_dir / "vggt_tiny_b")
     model = VGGT(config).eval()
     load_state_dict_into(model, state_dict)
     with torch.inference_mode():
@@ -172,8 +176,8 @@ def test_rope_positions_and_relative_invariance():
     )
 
 
-def test_track_head_keys_only_are_skipped(shared_dir):
-    config, state_dict, _, _, _ = _tiny(shared_dir, "tiny_b")
+def test_track_head_keys_only_are_skipped(fixtures_dir):
+    config, state_dict, _, _, _ = _tiny(fixtures_dir / "vggt_tiny_b")
     model = VGGT(config)
     load_state_dict_into(model, state_dict)
     broken = dict(state_dict)
@@ -189,8 +193,8 @@ def test_track_head_keys_only_are_skipped(shared_dir):
 
 
 @pytest.fixture(scope="module")
-def tiny_b_checkpoint(shared_dir):
-    config, state_dict, inputs, outputs, _ = _tiny(shared_dir, "tiny_b")
+def tiny_b_checkpoint(fixtures_dir):
+    config, state_dict, inputs, outputs, _ = _tiny(fixtures_dir / "vggt_tiny_b")
     return config, state_dict, inputs, outputs
 
 

@@ -20,33 +20,11 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from . import __version__
-from .config import SLAMConfig, load_config
+from .config import SLAMConfig, config_from_dict, read_config_file
+from .config import sections as sections_of
 from .errors import UserError
 
 log = logging.getLogger("sl4slam")
-
-# Flag prefix per config section; a field named "kind" becomes the section's own flag
-# (``--backend sl4``, ``--retrieval orb``).
-SECTION_PREFIX = {
-    "keyframes": "",
-    "submap": "submap-",
-    "alignment": "ransac-",
-    "backend": "backend-",
-    "retrieval": "",
-    "sim": "sim-",
-    "vggt": "",
-    "output": "",
-}
-# Short aliases for the paper's thresholds.
-ALIASES = {("submap", "tau_conf"): "--tau-conf", ("submap", "w_loop"): "--w-loop"}
-CHOICES = {
-    ("", "frontend"): ["vggt", "simulated"],
-    ("backend", "kind"): ["sl4", "sim3"],
-    ("retrieval", "kind"): ["auto", "salad", "orb", "none"],
-    ("backend", "loop_kernel"): ["none", "huber", "cauchy"],
-    ("vggt", "preprocess_mode"): ["crop", "pad"],
-}
-
 
 def field_docs(cls: type) -> dict[str, str]:
     """Attribute docstrings (the string literal after each field) of a dataclass."""
@@ -73,36 +51,57 @@ def _scalar_type(value: Any):
     return str
 
 
-def add_config_flags(parser: argparse.ArgumentParser, config: Any = None, section: str = "") -> None:
-    """Add one flag per config field; values land in ``args`` as ``section.field`` destinations."""
+def add_config_flags(parser: argparse.ArgumentParser, config: Any = None) -> None:
+    """Add one flag per config field; values land in ``args`` as ``section.field`` destinations.
+
+    Flag names, choices and the "advanced" grouping come from the sections themselves
+    (``sl4slam.config.Section``); the help text is each field's docstring and default.
+    """
     config = config if config is not None else SLAMConfig()
-    docs = field_docs(type(config))
-    group = parser.add_argument_group(f"{section} settings" if section else "run settings")
-    for f in dataclasses.fields(config):
-        value = getattr(config, f.name)
-        if dataclasses.is_dataclass(value):
-            add_config_flags(parser, value, f.name)
-            continue
-        prefix = SECTION_PREFIX.get(section, "")
-        name = f.name.replace("_", "-")
-        flag = f"--{section}" if f.name == "kind" else "--" + (name if name.startswith(prefix) else prefix + name)
-        names = [flag] + ([ALIASES[(section, f.name)]] if (section, f.name) in ALIASES else [])
-        dest = f"{section}.{f.name}" if section else f.name
-        help_text = (docs.get(f.name, "") + f" (default: {value})").strip()
-        kwargs: dict[str, Any] = {"dest": dest, "default": argparse.SUPPRESS, "help": help_text}
-        if isinstance(value, bool):
-            kwargs["action"] = argparse.BooleanOptionalAction
-        else:
-            kwargs["type"] = _scalar_type(value)
-            kwargs["metavar"] = f.name.upper() if (section, f.name) not in CHOICES else None
-            if (section, f.name) in CHOICES:
-                kwargs["choices"] = CHOICES[(section, f.name)]
-        group.add_argument(*names, **kwargs)
+    sections: list[tuple[str, Any]] = [("", config)] + [(s.section, s) for s in sections_of(config)]
+    advanced_groups = []
+    for name, section in sections:
+        title = f"[{name}] settings" if name else "run settings"
+        group = parser.add_argument_group(title)
+        advanced = None
+        docs = field_docs(type(section))
+        for f in dataclasses.fields(section):
+            value = getattr(section, f.name)
+            if dataclasses.is_dataclass(value):
+                continue
+            if f.name in section.advanced:
+                if advanced is None:
+                    advanced = parser.add_argument_group(f"[{name or 'run'}] advanced settings")
+                    advanced_groups.append(advanced)
+                target = advanced
+            else:
+                target = group
+            dest = f"{name}.{f.name}" if name else f.name
+            help_text = (docs.get(f.name, "") + f" (default: {value})").strip().replace("%", "%%")
+            kwargs: dict[str, Any] = {"dest": dest, "default": argparse.SUPPRESS, "help": help_text}
+            if isinstance(value, bool):
+                kwargs["action"] = argparse.BooleanOptionalAction
+            elif f.name in section.choices:
+                kwargs["choices"] = list(section.choices[f.name])
+            else:
+                kwargs["type"] = _scalar_type(value)
+                kwargs["metavar"] = f.name.upper()
+            target.add_argument(section.flag(f.name), **kwargs)
+    # advanced groups after the main ones, so `run --help` reads top-down
+    parser._action_groups = [g for g in parser._action_groups if g not in advanced_groups] + advanced_groups
 
 
 def config_from_args(args: argparse.Namespace) -> SLAMConfig:
-    """Defaults, then ``--config FILE``, then explicit flags."""
-    config = load_config(args.config) if getattr(args, "config", None) else SLAMConfig()
+    """Defaults, then ``--config FILE``, then explicit flags.
+
+    ``--sim-profile`` replaces the file's ``[sim] profile`` and, like it, is applied before every
+    explicit simulator setting (the file's and the flags'), whatever their order.
+    """
+    values = read_config_file(args.config) if getattr(args, "config", None) else {}
+    profile = vars(args).get("sim.profile")
+    if profile is not None and isinstance(values.get("sim", {}), dict):
+        values = {**values, "sim": {**values.get("sim", {}), "profile": profile}}
+    config = config_from_dict(values, SLAMConfig())
     for dest, value in vars(args).items():
         if "." in dest:
             section, name = dest.split(".", 1)
@@ -117,8 +116,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .runner import run_slam
 
     config = config_from_args(args)
-    summary = run_slam(args.source, args.out, config, replay_dir=args.replay, progress=not args.quiet)
-    return 0 if summary else 1
+    run_slam(args.source, args.out, config, replay_dir=args.replay, progress=not args.quiet, overwrite=args.overwrite)
+    return 0
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -214,12 +213,15 @@ def build_parser() -> argparse.ArgumentParser:
     verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
 
     run = verbs.add_parser("run", help="run SLAM on an image folder, video, TUM or 7-Scenes sequence",
-                           formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                           usage="sl4slam run SOURCE --out DIR [--config FILE] [settings]",
+                           description="Every setting below can also be given in a TOML/JSON file (--config); "
+                                       "flags override the file. Advanced settings are listed last.")
     run.add_argument("source", help="image folder, video file, TUM RGB-D or 7-Scenes sequence folder")
     run.add_argument("--out", required=True, help="output folder")
     run.add_argument("--config", help="TOML or JSON file of settings (flags override it)")
     run.add_argument("--replay", help="replay recorded frontend outputs from this folder instead of running the model")
-    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out (its files are removed first)")
+    run.add_argument("--quiet", action="store_true", help="no progress output")
     add_config_flags(run)
     run.set_defaults(func=cmd_run)
 
@@ -267,13 +269,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s: %(message)s")
+    from .runner import RunInterrupted
+
     try:
         return int(args.func(args) or 0)
+    except RunInterrupted as exc:
+        print(f"\nsl4slam: {exc}", file=sys.stderr)
+        return exc.exit_code
     except UserError as exc:
-        print(f"sl4slam: error: {exc}", file=sys.stderr)
+        print(f"\nsl4slam: error: {exc}", file=sys.stderr)  # on its own line, whatever was printed before
         return 2
     except KeyboardInterrupt:
-        print("sl4slam: interrupted", file=sys.stderr)
+        print("\nsl4slam: interrupted", file=sys.stderr)
         return 130
 
 

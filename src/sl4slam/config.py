@@ -1,24 +1,77 @@
-"""One dataclass tree for every setting of the pipeline.
+"""One dataclass tree for every setting that changes a run's results.
 
-Defaults cite VGGT-SLAM (Maggio, Lim, Carlone, NeurIPS 2025), section 5.1 ("paper"), or the
-authors' code ("reference code"). The command line is generated from this tree
-(``sl4slam.cli``) and the same tree can be read from a TOML or JSON file.
+Defaults cite VGGT-SLAM (Maggio, Lim, Carlone, NeurIPS 2025), section 5.1 ("paper"), the authors'
+code ("reference code"), or a measurement of ours (named with the benchmark that made it). The
+command line is generated from this tree (``sl4slam.cli``) and the same tree can be read from a
+TOML or JSON file. Each section checks its own values in ``validate()``, which the pipeline calls
+before any frame is read; a bad value is one line that names the flag, the config-file key and the
+allowed range.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from .errors import UserError
 
 
+class Section:
+    """Behaviour shared by the config sections: flag names and range checks.
+
+    Class attributes (not settings):
+        section: the section's key in the tree (``[alignment]`` in a config file).
+        flag_prefix: prefix of the section's command-line flags (``--ransac-...``).
+        flag_names: per-field flag overrides (e.g. the paper's short names).
+        choices: per-field allowed values of string settings.
+        advanced: fields listed under the section's "advanced" group of ``run --help``.
+    """
+
+    section: ClassVar[str] = ""
+    flag_prefix: ClassVar[str] = ""
+    flag_names: ClassVar[dict[str, str]] = {}
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {}
+    advanced: ClassVar[frozenset[str]] = frozenset()
+
+    @classmethod
+    def flag(cls, name: str) -> str:
+        """The command-line flag of field ``name``."""
+        if name in cls.flag_names:
+            return cls.flag_names[name]
+        if name == "kind":
+            return f"--{cls.section}"
+        dashed = name.replace("_", "-")
+        return "--" + (dashed if dashed.startswith(cls.flag_prefix) else cls.flag_prefix + dashed)
+
+    def _require(self, name: str, ok: bool, allowed: str) -> None:
+        """Raise a one-line ``UserError`` naming the flag and config key unless ``ok``."""
+        value = getattr(self, name)
+        finite = not isinstance(value, float) or math.isfinite(value)
+        if not (ok and finite):
+            key = f"{self.section}.{name}" if self.section else name
+            raise UserError(f"{self.flag(name)} (config key {key}) must be {allowed}, got {value!r}")
+
+    def _require_choice(self, name: str) -> None:
+        allowed = self.choices[name]
+        self._require(name, getattr(self, name) in allowed, "one of " + ", ".join(allowed))
+
+    def validate(self) -> None:
+        """Raise ``UserError`` for a value outside its meaningful range."""
+        for name in self.choices:
+            self._require_choice(name)
+
+
 @dataclass
-class KeyframeConfig:
+class KeyframeConfig(Section):
     """Keyframe selection by Lucas-Kanade disparity (paper 4.1)."""
+
+    section: ClassVar[str] = "keyframes"
+    advanced: ClassVar[frozenset[str]] = frozenset(
+        {"max_corners", "corner_quality", "corner_min_distance", "lk_window", "lk_levels", "min_tracked"})
 
     tau_disparity: float = 25.0
     """Mean tracked displacement (px) that makes a keyframe. Paper: 25; reference code: 50."""
@@ -35,10 +88,24 @@ class KeyframeConfig:
     min_tracked: int = 10
     """A frame with fewer successfully tracked corners is always a keyframe."""
 
+    def validate(self) -> None:
+        super().validate()
+        self._require("tau_disparity", self.tau_disparity > 0, "a positive number of pixels")
+        self._require("max_corners", self.max_corners >= 1, "at least 1")
+        self._require("corner_quality", 0 < self.corner_quality < 1, "in (0, 1)")
+        self._require("corner_min_distance", self.corner_min_distance >= 0, ">= 0 px")
+        self._require("lk_window", self.lk_window >= 3, "at least 3 px")
+        self._require("lk_levels", self.lk_levels >= 0, ">= 0")
+        self._require("min_tracked", self.min_tracked >= 1, "at least 1")
+
 
 @dataclass
-class SubmapConfig:
+class SubmapConfig(Section):
     """Submap assembly (paper 4.1, 5.1)."""
+
+    section: ClassVar[str] = "submap"
+    flag_prefix: ClassVar[str] = "submap-"
+    flag_names: ClassVar[dict[str, str]] = {"tau_conf": "--tau-conf", "w_loop": "--w-loop"}
 
     size: int = 16
     """New keyframes per submap, w. Paper evaluates 8/16/32 (tables use 32); reference CLI: 16."""
@@ -49,11 +116,36 @@ class SubmapConfig:
     use_point_head: bool = False
     """Use the frontend's point map instead of unprojecting depth (VGGT offers both)."""
 
+    def validate(self) -> None:
+        super().validate()
+        self._require("size", self.size >= 1, "at least 1")
+        self._require("w_loop", self.w_loop >= 0, ">= 0")
+        # 100 would drop every pixel (an empty map); the percentile is over the whole submap
+        self._require("tau_conf", 0 <= self.tau_conf < 100, "a percentile in [0, 100)")
+
 
 @dataclass
-class AlignmentConfig:
-    """Relative alignment of consecutive submaps (paper 4.2)."""
+class AlignmentConfig(Section):
+    """Relative alignment of submaps from a shared frame's points (paper 4.2)."""
 
+    section: ClassVar[str] = "alignment"
+    flag_prefix: ClassVar[str] = "ransac-"
+    flag_names: ClassVar[dict[str, str]] = {
+        "model": "--alignment", "min_points": "--alignment-min-points",
+        "min_inlier_ratio": "--alignment-min-inlier-ratio", "max_condition": "--alignment-max-condition"}
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {"model": ("auto", "sl4", "sim3-points", "sim3-cameras")}
+    advanced: ClassVar[frozenset[str]] = frozenset({
+        "max_correspondences", "max_points", "max_refit_points", "planarity_threshold", "refit",
+        "hypothesis_batch", "early_stop_spread", "preemptive_points", "preemptive_keep",
+        "preemptive_min_keep", "refit_rounds", "refit_min_gain", "small_set",
+        "camera_constrained_iterations", "camera_constrained_ridge", "min_points", "min_inlier_ratio",
+        "max_condition"})
+
+    model: str = "auto"
+    """What measures the relative transform: "sl4" (15-DOF DLT in RANSAC, the paper), "sim3-points"
+    (7-DOF Umeyama in RANSAC on the same points), "sim3-cameras" (the shared frame's two cameras and
+    the median depth ratio), or "auto": "sl4" for the SL(4) graph, "sim3-cameras" for the Sim(3) one.
+    A Sim(3) graph needs a Sim(3) model."""
     ransac_iterations: int = 300
     """Most RANSAC hypotheses (paper: 300, always drawn in full there)."""
     ransac_confidence: float = 0.999
@@ -63,15 +155,16 @@ class AlignmentConfig:
     inlier_threshold: float = 0.01
     """Inlier distance in submap units (paper: 0.01)."""
     max_correspondences: int = 30000
-    """Pixels of the shared frame passed to the alignment; beyond this an evenly strided subset
-    (about a quarter of a 518x294 frame's confident pixels) — as accurate, several times faster."""
+    """Pixels of the shared frame passed to the alignment (0: all); beyond this an evenly strided
+    subset (about a quarter of a 518x294 frame's confident pixels) — as accurate, several times
+    faster (benchmarks/bench_pipeline.py)."""
     max_points: int = 10000
     """Correspondences each hypothesis is scored on; larger sets are subsampled (seeded). The
     final inlier mask is computed on every point."""
     max_refit_points: int = 20000
-    """Inliers used by each least-squares refit (an evenly strided subset beyond this)."""
+    """Inliers used by each least-squares refit (0: all; an evenly strided subset beyond this)."""
     min_inliers: int = 50
-    """Fewer inliers than this makes the 15-DOF fit degenerate: fall back to Sim(3)."""
+    """Fewer inliers than this makes the 15-DOF fit degenerate: use a constrained model instead."""
     planarity_threshold: float = 0.02
     """Spread of the points along their thinnest principal axis relative to the widest
     (interdecile ranges, robust to a few off-plane points) below which they count as coplanar:
@@ -80,30 +173,154 @@ class AlignmentConfig:
     """Least-squares refit of H on all inliers, then re-score (the reference code does not)."""
     seed: int = 0
     """Seed of the RANSAC sampler (combined with the submap id)."""
+    hypothesis_batch: int = 50
+    """Hypotheses drawn, solved and scored together before the adaptive stopping test: 50
+    five-point samples contain an all-inlier one with probability 0.999 from about 2/3 inliers,
+    so a well-aligned pair needs one batch instead of all 300 (benchmarks/bench_ransac.py)."""
+    early_stop_spread: float = 0.5
+    """RANSAC may stop early only if the best hypothesis' inliers keep at least this fraction of
+    the points' planarity: one that explains just a dominant plane is the near-degenerate case
+    where more samples find the full 15-DOF map."""
+    preemptive_points: int = 1024
+    """Correspondences of the preemptive scoring round (every valid hypothesis is scored on them;
+    Nister's preemptive RANSAC)."""
+    preemptive_keep: float = 0.1
+    """Fraction of hypotheses (at least ``preemptive_min_keep``) scored on the full subset."""
+    preemptive_min_keep: int = 8
+    """Fewest hypotheses that survive the preemptive round."""
+    refit_rounds: int = 5
+    """Most refit / re-score rounds after RANSAC; they stop earlier once the inlier set stops
+    changing or the cost stops decreasing by more than ``refit_min_gain``."""
+    refit_min_gain: float = 1e-3
+    """Relative MSAC cost decrease below which another refit is not worth it (on the synthetic
+    world the remaining rounds change the cost by < 0.1 % each, with no visible change of H)."""
+    small_set: int = 4096
+    """Up to this many points, samples are drawn without repetition by permuting all indices."""
+    camera_constrained_iterations: int = 6
+    """Reweighting rounds of the camera-constrained fit used for planar shared frames."""
+    camera_constrained_ridge: float = 1e-6
+    """Ridge term (relative to the normal matrix's trace) that picks, among the camera-constrained
+    maps the plane cannot tell apart, the one nearest the Sim(3) guess."""
+    min_points: int = 5
+    """Fewest pixels confident in both submaps for any alignment (the 5-point minimal sample)."""
+    min_inlier_ratio: float = 0.1
+    """A fitted edge that explains fewer of the shared pixels is not trusted (a model that failed:
+    e.g. 0.16 % with random VGGT weights); the shared frame's camera edge takes its place."""
+    max_condition: float = 1e4
+    """Largest condition number of a measured 4x4 transform: consecutive windows differ by a scale
+    of 0.5-2 and a mild projective part (condition < 20 on the synthetic world), so beyond this the
+    fit has degenerated."""
+
+    def validate(self) -> None:
+        super().validate()
+        self._require("ransac_iterations", self.ransac_iterations >= 1, "at least 1")
+        self._require("ransac_confidence", 0 < self.ransac_confidence < 1, "between 0 and 1 (exclusive)")
+        self._require("inlier_threshold", self.inlier_threshold > 0, "a positive distance in submap units")
+        self._require("max_correspondences", self.max_correspondences >= 0, ">= 0 (0: all)")
+        self._require("max_points", self.max_points >= 5, "at least 5 (one minimal sample)")
+        self._require("max_refit_points", self.max_refit_points >= 0, ">= 0 (0: all)")
+        self._require("min_inliers", self.min_inliers >= 5, "at least 5 (one minimal sample)")
+        self._require("planarity_threshold", 0 <= self.planarity_threshold < 1, "in [0, 1)")
+        self._require("seed", self.seed >= 0, ">= 0")
+        self._require("hypothesis_batch", self.hypothesis_batch >= 1, "at least 1")
+        self._require("early_stop_spread", 0 <= self.early_stop_spread <= 1, "in [0, 1]")
+        self._require("preemptive_points", self.preemptive_points >= 5, "at least 5")
+        self._require("preemptive_keep", 0 < self.preemptive_keep <= 1, "in (0, 1]")
+        self._require("preemptive_min_keep", self.preemptive_min_keep >= 1, "at least 1")
+        self._require("refit_rounds", self.refit_rounds >= 0, ">= 0")
+        self._require("refit_min_gain", self.refit_min_gain >= 0, ">= 0")
+        self._require("small_set", self.small_set >= 0, ">= 0")
+        self._require("camera_constrained_iterations", self.camera_constrained_iterations >= 1, "at least 1")
+        self._require("camera_constrained_ridge", self.camera_constrained_ridge >= 0, ">= 0")
+        self._require("min_points", self.min_points >= 5, "at least 5")
+        self._require("min_inlier_ratio", 0 <= self.min_inlier_ratio <= 1, "in [0, 1]")
+        self._require("max_condition", self.max_condition > 1, "greater than 1")
 
 
 @dataclass
-class BackendConfig:
+class BackendConfig(Section):
     """Factor graph over submap transforms (paper 4.4)."""
+
+    section: ClassVar[str] = "backend"
+    flag_prefix: ClassVar[str] = "backend-"
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {
+        "kind": ("sl4", "sim3"), "loop_kernel": ("none", "huber", "cauchy"), "weighting": ("evidence", "fixed")}
+    advanced: ClassVar[frozenset[str]] = frozenset({
+        "prior_sigma", "loop_kernel", "loop_kernel_width", "effective_points", "min_sigma", "max_sigma",
+        "segment_sigma", "relinearize_threshold", "wildfire_threshold", "loop_step_threshold",
+        "max_loop_iterations"})
 
     kind: str = "sl4"
     """"sl4" (15-DOF projective, the paper) or "sim3" (7-DOF similarity, for comparison)."""
+    weighting: str = "evidence"
+    """Noise of each edge: "evidence" (information from the alignment's own inliers, residuals and
+    point spread; see ``sl4slam.backend.evidence``) or "fixed" (one isotropic ``sigma`` for every
+    edge, as the reference code)."""
     sigma: float = 0.05
-    """Isotropic sigma of between factors (reference code: 0.05)."""
+    """Isotropic sigma of between factors with fixed weighting (reference code: 0.05)."""
     prior_sigma: float = 1e-6
     """Sigma of the prior on the first submap (reference code: 1e-6)."""
-    fallback_sigma_scale: float = 10.0
-    """Sigma multiplier for odometry measured by a fallback (degenerate-scene) fit, so that loop
-    closures correct those links first."""
+    fallback_sigma_scale: float = 2.0
+    """Sigma multiplier for an edge measured by a fallback (camera-constrained or Sim(3) fit of a
+    degenerate frame, or the camera edge of a failed fit), so that loop closures correct those links
+    first. Evidence weighting already leaves the directions a planar frame does not observe weak;
+    on the synthetic world without distortion a factor of 10 made a loop worsen the ATE
+    (0.6 -> 2.9 mm), 2 lets it help (0.6 -> 0.6 mm, 2.8 -> 0.6 mm, 1.6 -> 1.4 mm over three seeds)."""
     loop_kernel: str = "none"
-    """Robust kernel on loop factors: "none", "huber" or "cauchy"."""
+    """Robust kernel on loop factors: "none", "huber" or "cauchy" (loops are verified before they
+    reach the graph; see the [loops] settings)."""
     loop_kernel_width: float = 1.0
     """Width of the robust kernel, in whitened residual units."""
+    effective_points: float = 200.0
+    """Evidence weighting: the alignment residuals of dense points are spatially correlated (the
+    model errs in smooth blobs, not per pixel), so an edge counts at most this many independent
+    points however many pixels it aligned. Calibrated on the synthetic world under the vggt
+    simulator profile (benchmarks/bench_robustness.py)."""
+    min_sigma: float = 1e-3
+    """Evidence weighting: smallest sigma of any edge direction (tangent units); no edge is more
+    certain than this, whatever its point count."""
+    max_sigma: float = 1.0
+    """Evidence weighting: directions the points do not observe (e.g. a planar shared frame) get
+    at most this sigma, which keeps the graph determined without pulling on them."""
+    segment_sigma: float = 1.0
+    """Sigma of the weak prior that anchors a new map segment (after an edge that failed its checks
+    or a graph update that failed): loops can still join segments. At most 1000 ``min_sigma``:
+    GTSAM reports weights that span more than about 1e7 as an indeterminate system."""
+    relinearize_threshold: float = 1e-2
+    """iSAM2 relinearizes a variable whose tangent step exceeds this (a fifth of the default sigma;
+    GTSAM's default 0.1 leaves loops half-absorbed; benchmarks/bench_backend.py)."""
+    wildfire_threshold: float = 1e-9
+    """iSAM2 stops back-substitution below this change of the step; small, so that one node's
+    estimate agrees with the full estimate after a loop."""
+    loop_step_threshold: float = 5e-2
+    """After loop factors arrive, iSAM2 iterates while some tangent step exceeds this (one default
+    sigma): a loop that corrects real drift is absorbed at once, a consistent one costs one step."""
+    max_loop_iterations: int = 30
+    """Cap on those extra iterations."""
+
+    def validate(self) -> None:
+        super().validate()
+        for name in ("sigma", "prior_sigma", "loop_kernel_width", "effective_points", "min_sigma", "max_sigma",
+                     "segment_sigma", "relinearize_threshold", "loop_step_threshold"):
+            self._require(name, getattr(self, name) > 0, "a positive number")
+        self._require("fallback_sigma_scale", self.fallback_sigma_scale >= 1, "at least 1")
+        self._require("max_sigma", self.min_sigma <= self.max_sigma <= 1000 * self.min_sigma,
+                      f"between --backend-min-sigma and 1000 times it ({self.min_sigma}, {1000 * self.min_sigma})")
+        self._require("segment_sigma", self.segment_sigma <= 1000 * self.min_sigma,
+                      f"at most 1000 times --backend-min-sigma ({1000 * self.min_sigma})")
+        self._require("wildfire_threshold", self.wildfire_threshold >= 0, ">= 0")
+        self._require("max_loop_iterations", self.max_loop_iterations >= 0, ">= 0")
 
 
 @dataclass
-class RetrievalConfig:
+class RetrievalConfig(Section):
     """Loop-closure retrieval (paper 4.3)."""
+
+    section: ClassVar[str] = "retrieval"
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {"kind": ("auto", "salad", "orb", "none")}
+    advanced: ClassVar[frozenset[str]] = frozenset({
+        "salad_image_size", "orb_features", "orb_candidates", "orb_ratio", "orb_max_hamming",
+        "orb_epipolar_threshold_px", "orb_max_image_side"})
 
     kind: str = "auto"
     """"salad" (the paper's SALAD descriptors), "orb" (weights-free, CPU), "none", or "auto": SALAD
@@ -123,21 +340,105 @@ class RetrievalConfig:
     orb_candidates: int = 5
     """ORB: (query, stored) pairs per submap, ranked by bag-of-words similarity, that are
     geometrically verified (a fixed budget, so the cost does not grow with the submap size)."""
-    min_loop_inlier_ratio: float = 0.3
-    """A retrieved loop is added to the graph only if its alignment keeps this inlier fraction
-    (or half the odometry's median, if that is lower) and needed no fallback: one false loop
-    bends the whole map."""
+    orb_ratio: float = 0.8
+    """ORB: Lowe's ratio test threshold of a tentative match (Lowe 2004: 0.8)."""
+    orb_max_hamming: float = 64.0
+    """ORB: largest Hamming distance (of 256 bits) of a tentative match (ORB-SLAM uses 50-100)."""
+    orb_epipolar_threshold_px: float = 1.5
+    """ORB: fundamental-matrix RANSAC inlier distance to the epipolar line, px at the working
+    resolution."""
+    orb_max_image_side: int = 640
+    """ORB: images whose longer side exceeds this (px) are downscaled to it before extraction, so
+    cost and the epipolar threshold do not depend on the input size."""
+
+    def validate(self) -> None:
+        super().validate()
+        self._require("tau_interval", self.tau_interval >= 0, ">= 0")
+        self._require("tau_desc", self.tau_desc > 0, "a positive descriptor distance")
+        self._require("salad_image_size", self.salad_image_size >= 14 and self.salad_image_size % 14 == 0,
+                      "a positive multiple of 14 px (DINOv2 patches)")
+        self._require("orb_features", self.orb_features >= 8, "at least 8 (the fundamental matrix needs 8 matches)")
+        self._require("orb_min_inliers", self.orb_min_inliers >= 8, "at least 8")
+        self._require("orb_candidates", self.orb_candidates >= 1, "at least 1")
+        self._require("orb_ratio", 0 < self.orb_ratio <= 1, "in (0, 1]")
+        self._require("orb_max_hamming", 0 < self.orb_max_hamming <= 256, "in (0, 256]")
+        self._require("orb_epipolar_threshold_px", self.orb_epipolar_threshold_px > 0, "a positive distance in px")
+        self._require("orb_max_image_side", self.orb_max_image_side >= 64, "at least 64 px")
 
 
 @dataclass
-class SimulatorConfig:
+class LoopConfig(Section):
+    """Which retrieved loops reach the graph (``sl4slam.loops``): one false loop bends the whole map."""
+
+    section: ClassVar[str] = "loops"
+    flag_prefix: ClassVar[str] = "loop-"
+    advanced: ClassVar[frozenset[str]] = frozenset({
+        "check_points", "depth_tolerance", "min_overlap", "min_consistent", "min_correlation",
+        "consistency_quantile"})
+
+    min_inlier_ratio: float = 0.3
+    """The loop frame's own alignment (its points in the old and the new submap) must keep this
+    inlier fraction (or half the odometry's median, if that is lower) without a fallback."""
+    verify_view: bool = True
+    """Check inside the new submap that the query keyframe and the loop frame see the same surfaces:
+    the loop frame's points, projected into the query keyframe, must land in its image, agree with
+    its depth and look alike (the loop frame's alignment compares two reconstructions of one image,
+    so it cannot tell a wrong place)."""
+    check_points: int = 4000
+    """Pixels of the loop frame used by the view check (an evenly strided subset)."""
+    min_overlap: float = 0.15
+    """View check: fraction of the loop frame's confident pixels that must project into the query
+    keyframe's image in front of its camera."""
+    depth_tolerance: float = 0.1
+    """View check: relative depth difference under which a projected point agrees with the query
+    keyframe's own depth."""
+    min_consistent: float = 0.3
+    """View check: fraction of the overlapping points whose depth must agree."""
+    min_correlation: float = 0.3
+    """View check: normalized cross-correlation of the grey values of the depth-consistent points in
+    the two images (exposure-invariant); unrelated textures score about 0."""
+    verify_graph: bool = True
+    """Check that the loop agrees with the current graph: chi-square test of the loop factor's
+    whitened error under the joint covariance of its two nodes and the loop's own noise."""
+    consistency_quantile: float = 0.999
+    """Chi-square quantile of that test (15 degrees of freedom for SL(4), 7 for Sim(3))."""
+
+    def validate(self) -> None:
+        super().validate()
+        self._require("min_inlier_ratio", 0 < self.min_inlier_ratio <= 1, "in (0, 1]")
+        self._require("check_points", self.check_points >= 100, "at least 100")
+        self._require("min_overlap", 0 <= self.min_overlap <= 1, "in [0, 1]")
+        self._require("depth_tolerance", self.depth_tolerance > 0, "a positive relative depth difference")
+        self._require("min_consistent", 0 <= self.min_consistent <= 1, "in [0, 1]")
+        self._require("min_correlation", -1 <= self.min_correlation <= 1, "in [-1, 1]")
+        self._require("consistency_quantile", 0 < self.consistency_quantile < 1, "in (0, 1)")
+
+
+SIM_PROFILES = ("exact", "vggt", "hard")
+"""Error profiles of the simulated frontend (:data:`SIM_PROFILE_VALUES` holds their settings)."""
+
+
+@dataclass
+class SimulatorConfig(Section):
     """Corruption model of the simulated frontend (``sl4slam.frontend.simulated`` documents it in full).
 
-    Every submap gets its own projective distortion ``H_s`` in SL(4); every frame of every submap
-    gets its own depth noise, outlier blobs and confidence. All of it is drawn from ``seed``, the
-    submap id and the frame indices, so a run is exactly reproducible.
+    Every submap gets its own projective distortion ``H_s`` in SL(4) and scale gauge; every frame of
+    every submap gets its own camera and focal error, depth noise, smooth depth warp, flying pixels at
+    depth edges, outlier blobs and confidence. All of it is drawn from ``seed``, the submap id and the
+    frame indices, so a run is exactly reproducible. ``profile`` sets the defaults of all error
+    magnitudes at once (``SimulatorConfig.from_profile``, ``--sim-profile``, ``[sim] profile``);
+    explicit settings override it.
     """
 
+    section: ClassVar[str] = "sim"
+    flag_prefix: ClassVar[str] = "sim-"
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {"profile": SIM_PROFILES}
+
+    profile: str = "exact"
+    """Error profile the settings started from: "exact" (each setting's own default: one exact SL(4)
+    transform per submap, cameras exact, small depth noise), "vggt" (calibrated to published VGGT
+    figures, cited in ``sl4slam.frontend.simulated``) or "hard" (the upper ends of those ranges, more
+    flying pixels and outliers). Applied before any explicit setting; recorded in summary.json."""
     perspective: float = 0.0
     """Norm of the perspective row ``p`` of ``H_s`` (what Sim(3) cannot model), in units of
     1 / (the submap's mean point distance): a point at the mean distance has its homogeneous
@@ -147,12 +448,52 @@ class SimulatorConfig:
     off-diagonal entries ~ N(0, shear^2), log stretches ~ N(0, shear^2) minus their mean. 0: none."""
     scale: float = 0.0
     """Standard deviation of the log of the per-submap global scale of ``H_s``. 0: none."""
+    gauge_scale_ratio: float = 1.0
+    """Scale gauge of each submap: its points and camera centres are multiplied by a factor drawn
+    log-uniformly in [r^-1/2, r^1/2], so one window's scale relative to any other is within
+    [1/r, r] (VGGT: ratios of 0.5 to 2 between consecutive windows are seen in practice, r = 2).
+    Rotation and translation of a Sim(3) gauge are fixed by the first camera being [I | 0]. 1: none."""
     normalize_scale: bool = True
     """Scale each submap so the mean distance of its valid true points to the first camera is 1,
     as VGGT normalizes its outputs; off: submaps keep metric units (before ``scale``)."""
+    camera_rotation_deg: float = 0.0
+    """Per-frame camera rotation error inside a submap (all frames but the first, which stays
+    [I | 0] as VGGT's does): std in degrees of each component of a rotation vector about the
+    camera centre. A pair of frames then disagrees by about 2.2x this in median (VGGT on indoor
+    video: 1-3 degrees median relative rotation error, Depth Anything 3's table). 0: none."""
+    camera_translation: float = 0.0
+    """Per-frame camera centre error (all frames but the first): std of each coordinate as a
+    fraction of the submap's mean true point distance. 0: none."""
+    focal_error: float = 0.0
+    """Per-frame focal error: fx and fy are multiplied by ``exp(focal_error * n)``, n ~ N(0, 1),
+    about the principal point, which stays where it is (VGGT assumes the image centre; its focal
+    length is off by up to about 7 %). 0: none."""
+    camera_window_frames: int = 100
+    """Window length (frames) beyond which the camera rotation, translation and focal errors grow
+    in proportion to the length (VGGT's quality falls as windows grow past about 100 frames)."""
     depth_noise: float = 0.002
     """Relative depth noise sigma: depth is multiplied by ``exp(depth_noise * n)``, n ~ N(0, 1)
     per pixel, so the error grows with depth."""
+    depth_warp: float = 0.0
+    """Smooth non-projective depth error per frame: depth is multiplied by ``exp(depth_warp * f)``
+    with ``f`` a zero-mean, unit-variance smooth random field (VGGT's depth errors are mostly
+    low-frequency; AbsRel 2-4 % indoors). 0: none."""
+    depth_warp_length: float = 0.3
+    """Correlation length of the depth warp field as a fraction of the image width."""
+    frame_consistency: float = 0.0
+    """Share of the variance of a frame's focal error and depth warp that belongs to the frame
+    itself, the same in every submap that contains it; the rest is drawn per submap. VGGT's depth
+    and focal length come mostly from the image itself, so two windows sharing a frame predict it
+    alike (the paper's RANSAC inlier threshold, 1 % of the scene scale between the shared frame's
+    two predictions, presumes so). 0: independent per submap."""
+    flying_px: float = 0.0
+    """Flying pixels: within this many px of a depth discontinuity, the depth is interpolated
+    between the local foreground and background (a random mix per pixel, smooth over the band),
+    with the low confidence of outliers (``outlier_confidence``), as a regression head blurs
+    depth edges. 0: none."""
+    flying_jump: float = 0.1
+    """Relative depth jump between two adjacent pixels (larger / smaller - 1) that makes a depth
+    discontinuity for ``flying_px``; smooth surfaces, even at grazing angles, stay below it."""
     outlier_fraction: float = 0.02
     """Fraction of each frame's pixels inside outlier blobs (spatially coherent errors)."""
     outlier_blob_px: float = 12.0
@@ -166,61 +507,287 @@ class SimulatorConfig:
     confidence_jitter: float = 0.2
     """Log-normal spread of the confidence of clean pixels (so it is not a function of depth alone)."""
     outlier_confidence: float = 0.02
-    """Factor on the confidence excess (confidence - 1) inside outlier blobs; pixels with no
-    measured depth (filled from their nearest neighbour) get confidence exactly 1."""
+    """Factor on the confidence excess (confidence - 1) inside outlier blobs and on flying pixels;
+    pixels with no measured depth (filled from their nearest neighbour) get confidence exactly 1."""
     distort_first_submap: bool = True
-    """Distort submap 0 too. The world frame is submap 0's frame, so its distortion is inherited
-    by every backend alike; switching it off isolates the error that alignment adds."""
+    """Distort submap 0 too (``H_s`` and the scale gauge). The world frame is submap 0's frame, so
+    its distortion is inherited by every backend alike; switching it off isolates the error that
+    alignment adds."""
     seed: int = 0
-    """Seed (>= 0); ``H_s`` is drawn from (seed, submap id), noise from (seed, submap id, frame index)."""
+    """Seed (>= 0); ``H_s`` and the gauge are drawn from (seed, submap id), per-frame errors from
+    (seed, submap id, frame index)."""
+    false_loop_rate: float = 0.0
+    """Fraction of the retrieval's loop proposals replaced by wrong places (``sl4slam.retrieval.false_loops``),
+    to measure the loop checks. 0: off."""
+    false_loop_min_distance: float = 1.0
+    """A wrong place is a keyframe at least this far (metres) from the query's true position ..."""
+    false_loop_min_angle: float = 30.0
+    """... or whose true viewing direction differs by at least this many degrees ..."""
+    false_loop_max_overlap: float = 0.05
+    """... and which sees at most this fraction of what the query sees (else it is a true revisit
+    seen from elsewhere, which a frontend reconstructs correctly)."""
+
+    def validate(self) -> None:
+        super().validate()
+        for name in ("perspective", "shear", "scale", "depth_noise", "outlier_magnitude", "confidence_jitter"):
+            self._require(name, getattr(self, name) >= 0, ">= 0")
+        self._require("outlier_fraction", 0 <= self.outlier_fraction < 1, "in [0, 1)")
+        self._require("outlier_blob_px", self.outlier_blob_px > 0, "> 0 px")
+        self._require("confidence_scale", self.confidence_scale > 0, "> 0")
+        self._require("outlier_confidence", 0 <= self.outlier_confidence <= 1, "in [0, 1]")
+        self._require("seed", self.seed >= 0, ">= 0")
+        self._require("false_loop_rate", 0 <= self.false_loop_rate <= 1, "in [0, 1]")
+        self._require("false_loop_min_distance", self.false_loop_min_distance >= 0, ">= 0 m")
+        self._require("false_loop_min_angle", 0 <= self.false_loop_min_angle <= 180, "in [0, 180] degrees")
+        self._require("false_loop_max_overlap", 0 <= self.false_loop_max_overlap <= 1, "in [0, 1]")
+
+    @classmethod
+    def from_profile(cls, profile: str, **overrides: Any) -> "SimulatorConfig":
+        """Settings of ``profile`` with ``overrides`` on top (the Python form of ``--sim-profile``)."""
+        config = cls()
+        apply_sim_profile(config, profile)
+        for key, value in overrides.items():
+            if key not in {f.name for f in dataclasses.fields(cls)} or key == "profile":
+                raise UserError(f"unknown simulator setting '{key}'")
+            setattr(config, key, value)
+        return config
+
+
+# Settings a profile sets; the others (seed, normalize_scale, distort_first_submap) say how to run.
+_PROFILED = (
+    "perspective", "shear", "scale", "gauge_scale_ratio", "camera_rotation_deg", "camera_translation",
+    "focal_error", "camera_window_frames", "depth_noise", "depth_warp", "depth_warp_length",
+    "frame_consistency", "flying_px", "flying_jump", "outlier_fraction", "outlier_blob_px",
+    "outlier_magnitude", "confidence_scale", "confidence_jitter", "outlier_confidence",
+)
+
+SIM_PROFILE_VALUES: dict[str, dict[str, Any]] = {
+    # The defaults above, bit for bit.
+    "exact": {},
+    # VGGT on indoor video; each value's source is in sl4slam.frontend.simulated's docstring,
+    # the resulting statistics are measured by tests/test_sim_profile.py.
+    "vggt": dict(
+        perspective=0.02, shear=0.01, gauge_scale_ratio=2.0, camera_rotation_deg=0.75,
+        camera_translation=0.003, focal_error=0.03, depth_noise=0.005, depth_warp=0.025, frame_consistency=0.8,
+        flying_px=1.5, outlier_fraction=0.02, outlier_magnitude=0.3,
+    ),
+    # The upper ends of the published ranges, more flying pixels and outliers.
+    "hard": dict(
+        perspective=0.05, shear=0.03, gauge_scale_ratio=2.0, camera_rotation_deg=1.3,
+        camera_translation=0.006, focal_error=0.05, depth_noise=0.01, depth_warp=0.04, frame_consistency=0.6,
+        flying_px=3.0, outlier_fraction=0.05, outlier_magnitude=0.5,
+    ),
+}
+"""Settings of each profile that differ from the defaults (``exact`` is the defaults)."""
+
+
+def apply_sim_profile(sim: SimulatorConfig, profile: str) -> SimulatorConfig:
+    """Set every error magnitude of ``sim`` to ``profile``'s value (in place; returns ``sim``).
+
+    Settings the profile does not name get their default, so applying a profile undoes any earlier
+    setting: apply it first, then explicit settings. ``seed``, ``normalize_scale`` and
+    ``distort_first_submap`` are left alone.
+    """
+    if not isinstance(profile, str) or profile not in SIM_PROFILES:
+        raise UserError(f"unknown simulator profile {profile!r} (--sim-profile / [sim] profile); use one of "
+                        f"{', '.join(SIM_PROFILES)}")
+    defaults = SimulatorConfig()
+    for name in _PROFILED:
+        setattr(sim, name, SIM_PROFILE_VALUES[profile].get(name, getattr(defaults, name)))
+    sim.profile = profile
+    return sim
 
 
 @dataclass
-class VGGTConfig:
+class VGGTConfig(Section):
     """VGGT frontend."""
+
+    section: ClassVar[str] = "vggt"
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {
+        "dtype": ("auto", "fp32", "bf16", "fp16"), "preprocess_mode": ("crop", "pad")}
 
     weights: str = "facebook/VGGT-1B"
     """Local ``.pt`` / ``.safetensors`` file or Hugging Face hub id (model.pt)."""
     device: str = "auto"
-    """"auto" (CUDA when available), "cpu" or "cuda"."""
+    """"auto" (CUDA when available), "cpu", "cuda" or "cuda:N"."""
     dtype: str = "auto"
     """"auto" (bf16 on GPUs that support it, else fp16; fp32 on CPU), "fp32", "bf16", "fp16"."""
     preprocess_mode: str = "crop"
     """VGGT preprocessing: "crop" (width 518) or "pad" (square 518)."""
 
+    def validate(self) -> None:
+        super().validate()
+        self._require("weights", bool(self.weights.strip()), "a file path or a Hugging Face hub id")
+        device_ok = self.device in ("auto", "cpu", "cuda") or (
+            self.device.startswith("cuda:") and self.device[5:].isdigit())
+        self._require("device", device_ok, "auto, cpu, cuda or cuda:N")
+
 
 @dataclass
-class OutputConfig:
-    """What a run writes."""
+class OutputConfig(Section):
+    """What a run writes, and how it reports."""
+
+    section: ClassVar[str] = "output"
+    advanced: ClassVar[frozenset[str]] = frozenset({"checkpoint_seconds", "progress_every"})
 
     voxel_size: float = 0.0
     """Voxel downsampling of ``map.ply`` in world units (0: off)."""
     max_map_points: int = 2_000_000
     """Cap on points written to ``map.ply`` (evenly subsampled, seeded)."""
     save_keyframe_points: bool = True
-    """Write per-keyframe world points and masks for dense evaluation."""
+    """Write per-keyframe world points and masks for dense evaluation and exports."""
     cache_frontend: bool = False
     """Store the frontend's outputs so the backend can be re-run without the model."""
+    checkpoint_seconds: float = 10.0
+    """``trajectory.txt`` and ``summary.json`` are rewritten from the current graph after a submap
+    once this many seconds have passed since the last write (0: after every submap), so an
+    interrupted run keeps its work."""
+    progress_every: int = 10
+    """When the output is not a terminal, one progress line every this many submaps."""
+
+    def validate(self) -> None:
+        super().validate()
+        self._require("voxel_size", self.voxel_size >= 0, ">= 0 world units (0: off)")
+        self._require("max_map_points", self.max_map_points >= 1, "at least 1")
+        self._require("checkpoint_seconds", self.checkpoint_seconds >= 0, ">= 0 s")
+        self._require("progress_every", self.progress_every >= 1, "at least 1")
 
 
 @dataclass
-class SLAMConfig:
+class UpgradeConfig(Section):
+    """Projective-to-metric upgrade of the finished map (``sl4slam.upgrade``): self-calibration
+    through the absolute dual quadric (Hartley & Zisserman, Multiple View Geometry, 2nd ed., ch. 19,
+    "H&Z") from zero skew, square pixels, a known principal point and one focal length.
+
+    Residuals are unitless: skew / f, fy / fx - 1, principal-point offset / f (and, for the focal
+    model, log focal ratios), so 0.01 reads "a hundredth of the focal length"."""
+
+    section: ClassVar[str] = "upgrade"
+    flag_prefix: ClassVar[str] = "upgrade-"
+    flag_names: ClassVar[dict[str, str]] = {"mode": "--metric-upgrade"}
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {
+        "mode": ("on", "off"),
+        "focal_model": ("shared", "varying"),
+        "loss": ("cauchy", "soft_l1", "huber", "arctan", "linear"),
+    }
+    advanced: ClassVar[frozenset[str]] = frozenset({
+        "focal_weight", "loss", "loss_scale", "outlier_factor", "min_inlier_fraction", "min_keyframes",
+        "min_condition", "max_uncertainty", "max_iterations", "max_residual_ratio"})
+
+    mode: str = "on"
+    """"on": estimate the upgrade at the end of a run and apply it to every node, pose and map point
+    when it is well conditioned and clearly better (benchmarks/results/upgrade.md: it never made a
+    run worse); "off": leave the map in the first submap's projective frame."""
+    focal_model: str = "shared"
+    """"shared": one focal length for every keyframe (one physical camera films the video; the
+    strongest constraint, with the fewest critical motions: Sturm, CVPR 1997, vs. varying focal,
+    Sturm, ICCV 1999). "varying": each keyframe's focal free (a zoom, or a frontend whose focal
+    wanders); no smoothness prior, which would bias a real zoom: the four other constraints per
+    camera determine the focal (H&Z 19.3)."""
+    focal_weight: float = 1.0
+    """Shared model: weight of the focal residual log(f_i / f) against the skew / aspect /
+    principal-point residuals; 1: a focal deviation of 0.01 (relative) counts like a principal
+    point 0.01 focal lengths off (our choice: the constraints are of like accuracy)."""
+    loss: str = "cauchy"
+    """Robust loss of the refinement (scipy.optimize.least_squares): "cauchy", "soft_l1", "huber",
+    "arctan" or "linear" (none). Our measurement (benchmarks/results/upgrade.md): with 0.1 to 0.4
+    of the cameras broken, only "cauchy" was applied every time (at the noise floor); "linear" failed."""
+    loss_scale: float = 0.01
+    """Residual (unitless) beyond which the robust loss down-weights, the noise expected of a good
+    camera. Our measurement on simulated pipeline runs: the kept keyframes fit to an RMS of
+    0.0004-0.008 after the upgrade (benchmarks/results/upgrade.md)."""
+    outlier_factor: float = 3.0
+    """After the robust fit a camera is kept when its residual (RMS of its constraints) is below
+    this many ``loss_scale``s; 3: the usual 3-sigma rule with ``loss_scale`` as the noise."""
+    min_inlier_fraction: float = 0.5
+    """Skip when fewer cameras than this fraction are kept: most keyframes must agree (our choice)."""
+    min_keyframes: int = 3
+    """Fewest keyframes: the linear absolute-dual-quadric estimate with a known principal point,
+    zero skew and unit aspect ratio needs 3 views (H&Z 19.3)."""
+    min_condition: float = 1e-3
+    """Skip when the refinement's Jacobian at the solution has smallest / largest singular value
+    below this (plane at infinity in units of the scene depth): pure rotation, pure translation and
+    other critical motions (H&Z 19.9) leave a direction undetermined. Our measurement: hand-held
+    paths >= 0.02, degenerate motions <= 1e-4 with 0.003 noise (benchmarks/results/upgrade.md)."""
+    max_uncertainty: float = 0.01
+    """Skip when the predicted standard deviation of the upgrade (plane at infinity in units of the
+    scene depth, calibration in units of the focal; from the residuals and the Jacobian) is above
+    this, i.e. a distortion of the map by a hundredth: near-degenerate motion with noisy cameras,
+    e.g. a rotation with a baseline of a hundredth of the scene depth. Our measurement: hand-held
+    paths and pipeline runs 2e-4 to 7e-3 (benchmarks/results/upgrade.md)."""
+    max_iterations: int = 100
+    """Most residual evaluations of each robust refinement (scipy's ``max_nfev``); our tests and
+    pipeline runs converge within 75, degenerate motions wander until this cap."""
+    max_residual_ratio: float = 0.8
+    """Never make it worse: apply only when the constraint residual after the upgrade is below
+    this fraction of the one before (on the kept cameras), so an already metric map (the residual
+    is noise) is left untouched (our choice)."""
+
+    def validate(self) -> None:
+        super().validate()
+        self._require("focal_weight", self.focal_weight > 0, "> 0")
+        self._require("loss_scale", self.loss_scale > 0, "> 0")
+        self._require("outlier_factor", self.outlier_factor >= 1, ">= 1")
+        self._require("min_inlier_fraction", 0 < self.min_inlier_fraction <= 1, "in (0, 1]")
+        self._require("min_keyframes", self.min_keyframes >= 3, "at least 3 (H&Z 19.3)")
+        self._require("min_condition", 0 <= self.min_condition < 1, "in [0, 1)")
+        self._require("max_uncertainty", self.max_uncertainty > 0, "> 0")
+        self._require("max_iterations", self.max_iterations >= 1, "at least 1")
+        self._require("max_residual_ratio", 0 < self.max_residual_ratio <= 1, "in (0, 1]")
+
+
+@dataclass
+class SLAMConfig(Section):
     """Everything a run needs."""
 
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {"frontend": ("vggt", "simulated")}
+    advanced: ClassVar[frozenset[str]] = frozenset({"max_frontend_failures"})
+
     frontend: str = "vggt"
-    """"vggt" or "simulated"."""
+    """"vggt" or "simulated" (needs RGB-D frames with ground-truth poses)."""
     max_frames: int = 0
     """Stop after this many input frames (0: all)."""
     stride: int = 1
     """Use every n-th input frame."""
+    max_frontend_failures: int = 3
+    """A submap on which the frontend fails (an exception, or non-finite output) is skipped; this
+    many failures in a row end the run (with its outputs written): the frontend is broken, not the
+    frames."""
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     submap: SubmapConfig = field(default_factory=SubmapConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
+    loops: LoopConfig = field(default_factory=LoopConfig)
     sim: SimulatorConfig = field(default_factory=SimulatorConfig)
     vggt: VGGTConfig = field(default_factory=VGGTConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    upgrade: UpgradeConfig = field(default_factory=UpgradeConfig)
+
+    def validate(self) -> None:
+        """Check every section, then the settings that depend on each other."""
+        super().validate()
+        self._require("max_frames", self.max_frames >= 0, ">= 0 (0: all)")
+        self._require("stride", self.stride >= 1, "at least 1")
+        self._require("max_frontend_failures", self.max_frontend_failures >= 1, "at least 1")
+        for section in sections(self):
+            section.validate()
+        model = alignment_model(self)
+        if self.backend.kind == "sim3" and model == "sl4":
+            raise UserError("--alignment sl4 measures projective transforms, which a Sim(3) graph cannot hold; "
+                            "use --alignment sim3-points or sim3-cameras with --backend sim3")
+
+
+def sections(config: SLAMConfig) -> list[Section]:
+    """The sections of ``config`` in tree order."""
+    return [getattr(config, f.name) for f in dataclasses.fields(config) if isinstance(getattr(config, f.name), Section)]
+
+
+def alignment_model(config: SLAMConfig) -> str:
+    """The alignment model a run uses ("auto" resolved from the graph's group)."""
+    if config.alignment.model != "auto":
+        return config.alignment.model
+    return "sl4" if config.backend.kind == "sl4" else "sim3-cameras"
 
 
 def config_to_dict(config: Any) -> dict:
@@ -240,7 +807,7 @@ def _apply(target: Any, values: dict, where: str) -> None:
             _apply(current, value, f"{where}{key}.")
         else:
             if current is not None and value is not None and not isinstance(value, type(current)):
-                if isinstance(current, float) and isinstance(value, int):
+                if isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool):
                     value = float(value)
                 else:
                     raise UserError(
@@ -250,14 +817,26 @@ def _apply(target: Any, values: dict, where: str) -> None:
 
 
 def config_from_dict(values: dict, base: SLAMConfig | None = None) -> SLAMConfig:
-    """Overlay ``values`` (nested dict) on ``base`` (default: the defaults)."""
+    """Overlay ``values`` (nested dict) on ``base`` (default: the defaults).
+
+    A ``profile`` key of the ``sim`` table is applied before the table's other keys, whatever
+    their order, so explicit simulator settings override the profile's.
+    """
     config = base if base is not None else SLAMConfig()
+    sim_values = values.get("sim")
+    if isinstance(sim_values, dict) and "profile" in sim_values:
+        apply_sim_profile(config.sim, sim_values["profile"])
     _apply(config, values, "")
     return config
 
 
 def load_config(path: str | Path, base: SLAMConfig | None = None) -> SLAMConfig:
     """Read a TOML (``.toml``) or JSON file of settings over the defaults."""
+    return config_from_dict(read_config_file(path), base)
+
+
+def read_config_file(path: str | Path) -> dict:
+    """The nested dict of settings in a TOML (``.toml``) or JSON file."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"config file not found: {path}")
@@ -272,4 +851,6 @@ def load_config(path: str | Path, base: SLAMConfig | None = None) -> SLAMConfig:
             values = json.loads(path.read_text())
     except (ValueError, UnicodeDecodeError) as exc:
         raise UserError(f"cannot parse config file {path}: {exc}") from None
-    return config_from_dict(values, base)
+    if not isinstance(values, dict):
+        raise UserError(f"config file {path} must hold a table/object of settings")
+    return values

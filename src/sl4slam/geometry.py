@@ -1,6 +1,6 @@
 """Pure geometry helpers: rigid, similarity and projective transforms, cameras, unprojection.
 
-Conventions (DESIGN.md): ``T_a_b`` maps points in frame ``b`` to frame ``a`` (``x_a = T_a_b x_b``);
+Conventions (docs/architecture.md): ``T_a_b`` maps points in frame ``b`` to frame ``a`` (``x_a = T_a_b x_b``);
 ``H_a_b`` is a 4x4 projective map with the same reading on homogeneous points. Pixel coordinates are
 ``(u, v) = (column, row)`` with integer values at pixel centres, as in VGGT and TUM. All functions
 are vectorized over leading batch dimensions and use float64 unless stated.
@@ -157,28 +157,63 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     return K, T_world_cam, C
 
 
+COLLINEAR_TOLERANCE = 1e-6
+"""Second / first singular value of a centred point set below which it counts as collinear."""
+
+
+def umeyama_sim3_batch(X_dst: np.ndarray, X_src: np.ndarray, with_scale: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares similarity ``T_dst_src`` (Umeyama 1991) for a batch of point sets.
+
+    Args:
+        X_dst: ``(M, k, 3)`` points in the target frame.
+        X_src: ``(M, k, 3)`` corresponding points in the source frame (k >= 3).
+        with_scale: estimate the scale (else a rigid transform, s = 1).
+
+    Returns:
+        T: ``(M, 4, 4)`` with ``X_dst ~ s R X_src + t``.
+        valid: ``(M,)`` bool, False for (near-)collinear or repeated source points.
+    """
+    X_dst = np.asarray(X_dst, dtype=np.float64)
+    X_src = np.asarray(X_src, dtype=np.float64)
+    k = X_src.shape[1]
+    mu_src = X_src.mean(axis=1)
+    mu_dst = X_dst.mean(axis=1)
+    src = X_src - mu_src[:, None]
+    dst = X_dst - mu_dst[:, None]
+    cov = np.einsum("mki,mkj->mij", dst, src) / k  # (M, 3, 3)
+    U, sing, Vt = np.linalg.svd(cov)
+    reflect = np.linalg.det(U) * np.linalg.det(Vt) < 0
+    D = np.ones((len(cov), 3))
+    D[reflect, 2] = -1.0
+    R = (U * D[:, None, :]) @ Vt
+    var_src = (src**2).sum(axis=(1, 2)) / k
+    src_sing = np.linalg.svd(src, compute_uv=False)  # (M, 3) spread of the source points
+    valid = (var_src > 0) & (src_sing[:, 1] > COLLINEAR_TOLERANCE * src_sing[:, 0])
+    if with_scale:
+        scale = np.where(valid, (sing * D).sum(axis=1) / np.where(var_src > 0, var_src, 1.0), 1.0)
+        valid &= scale > 0
+    else:
+        scale = np.ones(len(cov))
+    T = np.zeros((len(cov), 4, 4))
+    T[:, :3, :3] = scale[:, None, None] * R
+    T[:, :3, 3] = mu_dst - np.einsum("mij,mj->mi", T[:, :3, :3], mu_src)
+    T[:, 3, 3] = 1.0
+    return T, valid
+
+
 def umeyama_sim3(X_src: np.ndarray, X_dst: np.ndarray, with_scale: bool = True) -> np.ndarray:
     """Least-squares similarity ``T_dst_src`` ``(4, 4)`` with ``X_dst ~ s R X_src + t``.
 
     Args:
         X_src, X_dst: ``(N, 3)`` corresponding points, N >= 3, not collinear.
+
+    Raises:
+        ValueError: the source points are collinear or repeated.
     """
-    X_src = np.asarray(X_src, dtype=np.float64)
-    X_dst = np.asarray(X_dst, dtype=np.float64)
-    mu_src, mu_dst = X_src.mean(0), X_dst.mean(0)
-    A, B = X_src - mu_src, X_dst - mu_dst
-    cov = B.T @ A / len(A)
-    U, sing, Vt = np.linalg.svd(cov)
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1.0
-    R = U @ D @ Vt
-    var_src = (A**2).sum() / len(A)
-    s = float((sing * np.diag(D)).sum() / var_src) if with_scale and var_src > 0 else 1.0
-    T = np.eye(4)
-    T[:3, :3] = s * R
-    T[:3, 3] = mu_dst - s * R @ mu_src
-    return T
+    T, valid = umeyama_sim3_batch(np.asarray(X_dst)[None], np.asarray(X_src)[None], with_scale)
+    if not valid[0]:
+        raise ValueError("Umeyama alignment needs at least 3 non-collinear points")
+    return T[0]
 
 
 def sim3_decompose(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:

@@ -1,7 +1,20 @@
 """Writing a run's results: trajectory, dense map, per-keyframe points, summary, plots.
 
 Every file is written to a temporary name and renamed into place, so an interrupted run never
-leaves a partial file, and nothing non-finite is ever written.
+leaves a partial file, and nothing non-finite is ever written. During a run,
+:func:`write_checkpoint` keeps ``trajectory.txt`` and ``summary.json`` current; at the end (or on
+an interruption) :func:`write_outputs` writes everything.
+
+A result folder (format version 2, ``summary.json["format"]``):
+
+| file | content |
+|---|---|
+| ``trajectory.txt`` | keyframe poses ``T_world_cam``, TUM format |
+| ``trajectory_gt.txt`` | ground truth of the same keyframes, when known |
+| ``map.ply`` | coloured, confidence-filtered dense map |
+| ``keyframes/NNNNNN.npz`` | per keyframe (NNNNNN its frame index): ``points_world`` (H, W, 3) float32, ``mask`` (H, W), ``confidence`` (H, W) float16 percentile in its submap, ``colors`` (H, W, 3) uint8, ``K``, ``T_world_cam``, ``timestamp``, ``frame_index``, ``submap_id``, ``segment`` |
+| ``summary.json`` | status, settings, counts, every edge (loops with their verdicts), segments, timings, memory, ATE |
+| ``trajectory.png`` | top view of the trajectory (and ground truth) |
 """
 
 from __future__ import annotations
@@ -17,14 +30,19 @@ import numpy as np
 
 from .errors import UserError
 from .metrics import ATEResult, ate
+from .paths import RUN_FILES, clear_run, holds_run  # noqa: F401 (part of the outputs API)
 from .pipeline import SLAMResult
 from .submap import StoredKeyframe
 
-
+RESULT_FORMAT = {"name": "sl4slam-result", "version": 2}
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
 
 
 def keyframe_world_points(keyframe: StoredKeyframe, H_world_submap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -42,32 +60,48 @@ def keyframe_world_points(keyframe: StoredKeyframe, H_world_submap: np.ndarray) 
     return X_world.astype(np.float32), valid
 
 
-def build_map(
-    result: SLAMResult, max_points: int, voxel_size: float = 0.0, seed: int = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """The coloured dense map: ``(N, 3)`` float32 world points and ``(N, 3)`` uint8 colours.
+def write_map_and_keyframes(result: SLAMResult, out_dir: Path, max_points: int, voxel_size: float = 0.0, seed: int = 0,
+                            keyframe_dir: Path | None = None) -> int:
+    """``map.ply`` (and, with ``keyframe_dir``, one ``.npz`` per keyframe) from one pass over the
+    keyframes: each keyframe's world points are computed once. Returns the map's point count.
 
-    Confidence-filtered; evenly subsampled (seeded) to at most ``max_points``; optionally one
-    point (the centroid, mean colour) per voxel of size ``voxel_size``.
+    The map is confidence-filtered, subsampled (seeded) to at most ``max_points`` and optionally
+    reduced to one point (centroid, mean colour) per voxel of size ``voxel_size``.
     """
     counts = [int(np.unpackbits(k.mask_bits).sum()) for k in result.keyframes]
-    total = max(1, sum(counts))
-    keep_fraction = min(1.0, max_points / total) if max_points > 0 else 1.0
+    keep_fraction = min(1.0, max_points / max(1, sum(counts)))
     rng = np.random.default_rng(seed)
+    if keyframe_dir is not None:
+        keyframe_dir.mkdir(parents=True, exist_ok=True)
     chunks_xyz, chunks_rgb = [], []
-    for keyframe in result.keyframes:
+    for index, keyframe in enumerate(result.keyframes):
         X, valid = keyframe_world_points(keyframe, result.H_world_submap[keyframe.submap_id])
-        xyz, rgb = X[valid], keyframe.colors[valid]
-        if keep_fraction < 1.0:
-            pick = rng.random(len(xyz)) < keep_fraction
-            xyz, rgb = xyz[pick], rgb[pick]
-        chunks_xyz.append(xyz)
-        chunks_rgb.append(rgb)
+        colors = result.keyframe_colors(keyframe)
+        if keyframe_dir is not None:
+            _write_keyframe(keyframe_dir, keyframe, X, valid, colors, result, index)
+        pick = valid if keep_fraction >= 1.0 else valid & (rng.random(valid.shape) < keep_fraction)
+        chunks_xyz.append(X[pick])
+        chunks_rgb.append(colors[pick])
     xyz = np.concatenate(chunks_xyz) if chunks_xyz else np.zeros((0, 3), np.float32)
     rgb = np.concatenate(chunks_rgb) if chunks_rgb else np.zeros((0, 3), np.uint8)
+    if len(xyz) > max_points:  # the per-keyframe draw is only about right: cap it exactly
+        chosen = np.sort(rng.choice(len(xyz), size=max_points, replace=False))
+        xyz, rgb = xyz[chosen], rgb[chosen]
     if voxel_size > 0 and len(xyz):
         xyz, rgb = voxel_downsample(xyz, rgb, voxel_size)
-    return xyz, rgb
+    write_ply(out_dir / "map.ply", xyz, rgb)
+    return len(xyz)
+
+
+def _write_keyframe(directory: Path, keyframe: StoredKeyframe, X: np.ndarray, valid: np.ndarray, colors: np.ndarray,
+                    result: SLAMResult, index: int) -> None:
+    target = directory / f"{keyframe.frame_index:06d}.npz"
+    tmp = directory / f".{keyframe.frame_index:06d}.{os.getpid()}.tmp.npz"
+    np.savez(tmp, points_world=np.where(valid[..., None], X, 0.0).astype(np.float32), mask=valid, colors=colors,
+             confidence=keyframe.confidence_percentile().astype(np.float16), K=result.K[index],
+             T_world_cam=result.T_world_cam[index], timestamp=keyframe.timestamp, frame_index=keyframe.frame_index,
+             submap_id=keyframe.submap_id, segment=int(result.segments[index]))
+    os.replace(tmp, target)
 
 
 def voxel_downsample(xyz: np.ndarray, rgb: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
@@ -126,10 +160,11 @@ def compute_ate(result: SLAMResult) -> ATEResult | None:
 
 
 def plot_trajectories(path: Path, curves: dict[str, np.ndarray], gt: np.ndarray | None, title: str) -> None:
-    """Top view of trajectories ``{label: (N, 3)}`` (and ground truth) on the principal plane.
+    """Top view of trajectories ``{label: (N, 3)}`` (and ground truth) on their principal plane.
 
-    The plane is spanned by the two main directions of the ground truth (or of the first curve):
-    a top view whatever the dataset's world axes are.
+    The plane is spanned by the two main directions of the ground truth (or of the first curve),
+    a top view whatever the dataset's world axes are; the axis labels say so. Starts are marked
+    with a circle, ends with a square. Units are the trajectory's (metres once aligned to ground truth).
     """
     import matplotlib
 
@@ -140,6 +175,7 @@ def plot_trajectories(path: Path, curves: dict[str, np.ndarray], gt: np.ndarray 
     centre = reference.mean(0)
     _, _, Vt = np.linalg.svd(reference - centre, full_matrices=False)
     axes = Vt[:2]
+    unit = "m" if gt is not None else "map units"
     fig, ax = plt.subplots(figsize=(6, 6))
     if gt is not None:
         p = (gt - centre) @ axes.T
@@ -147,12 +183,16 @@ def plot_trajectories(path: Path, curves: dict[str, np.ndarray], gt: np.ndarray 
     for label, positions in curves.items():
         p = (positions - centre) @ axes.T
         ax.plot(p[:, 0], p[:, 1], "-", lw=1.2, label=label)
-        ax.plot(p[:1, 0], p[:1, 1], "o", ms=4, color=ax.lines[-1].get_color())
+        colour = ax.lines[-1].get_color()
+        ax.plot(p[:1, 0], p[:1, 1], "o", ms=6, color=colour, label=f"{label} start")
+        ax.plot(p[-1:, 0], p[-1:, 1], "s", ms=6, color=colour, label=f"{label} end")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_title(title)
+    ax.set_xlabel(f"first principal direction of the trajectory ({unit})")
+    ax.set_ylabel(f"second principal direction ({unit})")
+    ax.set_title(title, fontsize=10)
     ax.legend(loc="best", fontsize=8)
     ax.grid(alpha=0.3)
-    tmp = Path(path).with_name(Path(path).stem + ".tmp.png")
+    tmp = Path(path).with_name(f".{Path(path).stem}.{os.getpid()}.tmp.png")
     fig.savefig(tmp, dpi=110, bbox_inches="tight")
     plt.close(fig)
     os.replace(tmp, path)
@@ -160,73 +200,93 @@ def plot_trajectories(path: Path, curves: dict[str, np.ndarray], gt: np.ndarray 
 
 def summarize(result: SLAMResult, config_dict: dict, ate_result: ATEResult | None, extra: dict | None = None) -> dict:
     """The content of ``summary.json``."""
-    odometry = [e for e in result.edges if e.kind == "odometry"]
-    loops = [e for e in result.edges if e.kind == "loop"]
-    per_submap = result.stats.get("seconds_per_submap", [])
+    odometry = [e for e in result.edges if e.kind == "odometry" and e.accepted]
+    loops = [e for e in result.edges if e.kind == "loop" and e.accepted]
 
     def ratios(edges: Sequence) -> dict:
         values = np.array([e.inlier_ratio for e in edges]) if edges else np.zeros(0)
         return {"count": len(values), "median": float(np.median(values)) if len(values) else None,
                 "min": float(values.min()) if len(values) else None}
 
+    stats = result.stats
     summary = {
-        "counts": {k: result.stats[k] for k in ("frames", "keyframes", "submaps", "loops", "fallbacks", "frames_without_ground_truth") if k in result.stats},
+        "format": dict(RESULT_FORMAT),
+        "counts": {k: stats[k] for k in ("frames", "keyframes", "submaps", "loops", "loops_rejected", "fallbacks",
+                                         "segments") if k in stats},
+        "dropped_frames": stats.get("dropped_frames", {}),
+        "frontend_failures": stats.get("frontend_failures", []),
         "inlier_ratio": {"odometry": ratios(odometry), "loops": ratios(loops)},
         "fallbacks": [{"submaps": [e.submap_from, e.submap_to], "frame": e.frame_index, "reason": e.fallback}
-                      for e in result.edges if e.fallback],
-        "loops": [{"submaps": [e.submap_from, e.submap_to], "frame": e.frame_index, "inlier_ratio": round(e.inlier_ratio, 4),
-                   "rms": round(e.rms, 6)} for e in loops],
-        "seconds": {"total": round(result.stats.get("seconds_total", 0.0), 3),
-                    "by_stage": {k: round(v, 3) for k, v in result.stats.get("seconds_by_stage", {}).items()},
-                    "per_submap_median": per_submap,
-                    "final_optimization": result.stats.get("seconds_final_optimization", 0.0)},
-        "memory": {**peak_memory(), "stored_keyframe_bytes": result.stats.get("stored_bytes", 0)},
+                      for e in odometry if e.fallback],
+        "loops": [e.as_dict() for e in loops],
+        "rejected_loops": [e.as_dict() for e in result.edges if e.kind == "loop" and not e.accepted],
+        "segments": [{"first_submap": e.submap_to, "reason": e.reason} for e in result.edges if e.kind == "segment"],
+        "edges": [e.as_dict() for e in result.edges],
+        "seconds": {"total": round(stats.get("seconds_total", 0.0), 3),
+                    "by_stage": {k: round(v, 3) for k, v in stats.get("seconds_by_stage", {}).items()},
+                    "per_submap_median": stats.get("seconds_per_submap", {}),
+                    "final_optimization": stats.get("seconds_final_optimization", 0.0)},
+        "memory": {**peak_memory(), "stored_keyframe_bytes": stats.get("stored_bytes", 0),
+                   "stored_bytes_per_keyframe": round(stats.get("stored_bytes", 0) / max(1, len(result.keyframes)))},
+        "metric_upgrade": stats.get("metric_upgrade", []),
         "config": config_dict,
     }
     if ate_result is not None:
         summary["ate"] = {"rmse": ate_result.rmse, "mean": ate_result.mean, "median": ate_result.median,
                           "max": ate_result.max, "poses": ate_result.num_poses, "scale": ate_result.scale,
-                          "metric": "evo_ape -as (translation, Sim(3) Umeyama alignment)"}
+                          "unit": "m", "metric": "evo_ape -as (translation, Sim(3) Umeyama alignment)"}
     if extra:
         summary.update(extra)
     return summary
 
 
-def write_outputs(result: SLAMResult, out_dir: Path, config, source_name: str = "", skipped: Sequence[str] = ()) -> dict:
-    """Write ``trajectory.txt``, ``map.ply``, ``keyframes/``, ``summary.json``, ``trajectory.png``.
+def write_checkpoint(result: SLAMResult, out_dir: Path, config, extra: dict | None = None) -> dict:
+    """``trajectory.txt`` and ``summary.json`` of the current state (cheap; called during a run)."""
+    from .config import config_to_dict
+    from .io import write_tum_trajectory
 
-    Returns the summary dict.
+    out_dir = Path(out_dir)
+    if len(result.keyframes) and np.all(np.isfinite(result.T_world_cam)):
+        write_tum_trajectory(out_dir / "trajectory.txt", result.timestamps, result.T_world_cam)
+    summary = summarize(result, config_to_dict(config), None, {"status": "running", **(extra or {})})
+    atomic_write_bytes(out_dir / "summary.json", json.dumps(summary, indent=2).encode())
+    return summary
+
+
+def write_outputs(result: SLAMResult, out_dir: Path, config, source_name: str = "", skipped: Sequence[str] = (),
+                  status: str = "complete", extra: dict | None = None) -> dict:
+    """Write ``trajectory.txt`` (and ``trajectory_gt.txt``), ``map.ply``, ``keyframes/``,
+    ``summary.json``, ``trajectory.png``. Returns the summary dict.
+
+    Raises ``UserError`` when a file cannot be written (the message names it).
     """
     from .config import config_to_dict
     from .io import write_tum_trajectory
 
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    if not np.all(np.isfinite(result.T_world_cam)):
-        raise UserError("the optimized trajectory has non-finite poses; the alignment degenerated — see summary fallbacks")
-    write_tum_trajectory(out_dir / "trajectory.txt", result.timestamps, result.T_world_cam)
-    xyz, rgb = build_map(result, config.output.max_map_points, config.output.voxel_size, seed=config.alignment.seed)
-    write_ply(out_dir / "map.ply", xyz, rgb)
-    if config.output.save_keyframe_points:
-        write_keyframe_points(result, out_dir / "keyframes")
-    ate_result = compute_ate(result)
-    curves = {"estimate": ate_result.positions_aligned if ate_result else result.T_world_cam[:, :3, 3]}
-    plot_trajectories(out_dir / "trajectory.png", curves, ate_result.positions_gt if ate_result else None,
-                      f"{source_name} ({config.backend.kind})" if source_name else config.backend.kind)
-    summary = summarize(result, config_to_dict(config), ate_result,
-                        {"source": source_name, "skipped_inputs": list(skipped), "map_points": int(len(xyz))})
-    atomic_write_bytes(out_dir / "summary.json", json.dumps(summary, indent=2).encode())
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if not np.all(np.isfinite(result.T_world_cam)):
+            raise UserError("the optimized trajectory has non-finite poses; the alignment degenerated — see summary fallbacks")
+        if len(result.keyframes):
+            write_tum_trajectory(out_dir / "trajectory.txt", result.timestamps, result.T_world_cam)
+        if result.T_world_cam_gt is not None:
+            write_tum_trajectory(out_dir / "trajectory_gt.txt", result.timestamps, result.T_world_cam_gt)
+        keyframe_dir = out_dir / "keyframes" if config.output.save_keyframe_points else None
+        map_points = write_map_and_keyframes(result, out_dir, config.output.max_map_points, config.output.voxel_size,
+                                             seed=config.alignment.seed, keyframe_dir=keyframe_dir)
+        ate_result = compute_ate(result)
+        if len(result.keyframes):
+            curves = {"estimate": ate_result.positions_aligned if ate_result else result.T_world_cam[:, :3, 3]}
+            name = f"{source_name}, " if source_name else ""
+            title = f"{name}{config.backend.kind} graph, top view"
+            if ate_result is not None:
+                title += f"\nATE RMSE {ate_result.rmse:.4f} m over {ate_result.num_poses} keyframes (Sim(3)-aligned)"
+            plot_trajectories(out_dir / "trajectory.png", curves, ate_result.positions_gt if ate_result else None, title)
+        summary = summarize(result, config_to_dict(config), ate_result,
+                            {"status": status, "source": source_name, "skipped_inputs": list(skipped),
+                             "map_points": int(map_points), **(extra or {})})
+        atomic_write_bytes(out_dir / "summary.json", json.dumps(summary, indent=2).encode())
+    except OSError as exc:
+        raise UserError(f"cannot write the results into {out_dir}: {exc.strerror or exc} ({exc.filename or out_dir})") from None
     return summary
-
-
-def write_keyframe_points(result: SLAMResult, directory: Path) -> None:
-    """One ``.npz`` per keyframe: world points ``(H, W, 3)`` float32, mask, colours, camera."""
-    directory.mkdir(parents=True, exist_ok=True)
-    for keyframe, T_world_cam, K in zip(result.keyframes, result.T_world_cam, result.K):
-        X, valid = keyframe_world_points(keyframe, result.H_world_submap[keyframe.submap_id])
-        X[~valid] = 0.0
-        target = directory / f"{keyframe.frame_index:06d}.npz"
-        tmp = directory / f"{keyframe.frame_index:06d}.tmp.npz"
-        np.savez(tmp, points_world=X, mask=valid, colors=keyframe.colors, K=K, T_world_cam=T_world_cam,
-                 timestamp=keyframe.timestamp, submap_id=keyframe.submap_id)
-        os.replace(tmp, target)

@@ -1,9 +1,29 @@
-"""Where sl4slam keeps downloaded weights and generated data on the user's machine."""
+"""Where sl4slam keeps downloaded weights on the user's machine, and what a run writes into its folder."""
 
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
+
+RUN_FILES = ("trajectory.txt", "trajectory_gt.txt", "trajectory_all.txt", "map.ply", "summary.json", "trajectory.png",
+             "keyframes", "frontend_cache")
+"""What a run writes into its folder (``--overwrite`` removes exactly these)."""
+
+
+def holds_run(out_dir: Path) -> bool:
+    """Whether ``out_dir`` holds files of an earlier run."""
+    return any((Path(out_dir) / name).exists() for name in RUN_FILES)
+
+
+def clear_run(out_dir: Path) -> None:
+    """Remove an earlier run's files from ``out_dir`` (only the names a run writes)."""
+    for name in RUN_FILES:
+        path = Path(out_dir) / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
 
 
 def user_cache_dir() -> Path:

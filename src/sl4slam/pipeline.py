@@ -1,47 +1,102 @@
 """The orchestrator: frames -> keyframes -> submaps -> alignment -> factor graph -> poses and map.
 
-It talks to every stage through its interface only (``Frontend``, ``Retrieval``, the backend and
-the alignment functions), so each can be swapped: VGGT or the simulator, SALAD or ORB retrieval,
-the SL(4) or the Sim(3) graph.
+It is given its stages and talks to each through its interface only (``sl4slam.types``): the
+frontend (VGGT, the simulator, a replayed cache), retrieval (SALAD, ORB, none), the aligner (SL(4)
+or Sim(3)), the backend (the SL(4) or Sim(3) graph) and the loop verifier. ``process_submap`` reads
+as the list of steps of one submap; each step is a method below it. See docs/architecture.md.
+
+Nothing that goes wrong inside a submap ends a run:
+
+- the frontend fails (an exception or non-finite output): the submap is skipped and its keyframes
+  are lost; the next submap still shares a frame with the last good one. ``max_frontend_failures``
+  failures in a row end the run, with what was done returned;
+- the odometry fit fails or fails its checks (``sl4slam.edges``): the shared frame's camera edge
+  (its two cameras and depth ratio) takes its place with an inflated sigma, listed as a fallback;
+- that is unusable too (the frontend's cameras are implausible), or GTSAM cannot solve the graph
+  with the new edge: the submap starts a new map segment — its node gets a weak prior at the
+  previous node's estimate instead of an odometry factor, so the trajectory continues, later loops
+  can join the segments, and the summary lists where each segment starts and why;
+- anything goes wrong with a loop candidate (an unreadable loop frame, a failed alignment, a check
+  that fails, a graph update that fails): the loop is rejected and listed with its reason.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
 
-from .alignment import camera_constrained_sl4, estimate_sl4, sim3_from_shared_frame
-from .backend import make_backend, validate_backend_config
+from .alignment import make_aligner
+from .backend import Backend, BackendUpdateError, make_backend
+from .backend.evidence import edge_information
 from .config import SLAMConfig
+from .edges import EdgeReport, camera_problem, edge_problem
 from .errors import UserError
 from .geometry import decompose_projection, normalize_sl4, to_4x4
 from .keyframes import KeyframeSelector
-from .submap import StoredKeyframe, confidence_mask, submap_points
-from .types import Alignment, Frame, FrameSource, Frontend, LoopCandidate, Retrieval, SubmapPrediction
+from .loops import LoopEvidence, LoopVerifier, grey_for_check
+from .progress import Progress, StageTimer
+from .submap import StoredKeyframe, confidence_levels, confidence_mask, submap_points
+from .types import Aligner, Alignment, Frame, FrameSource, FrameView, Frontend, LoopCandidate, Retrieval, SubmapPrediction
 
 log = logging.getLogger("sl4slam")
 
-MIN_ALIGNMENT_POINTS = 5
+
+class FrontendFailedError(UserError):
+    """The frontend failed on ``max_frontend_failures`` submaps in a row."""
 
 
 @dataclass
-class EdgeReport:
-    """One relative measurement added to the graph."""
+class SubmapInput:
+    """The frames of one submap and where each kind sits.
 
-    kind: str  # "odometry" or "loop"
-    submap_from: int
-    submap_to: int
-    frame_index: int
-    model: str
-    inlier_ratio: float
-    rms: float
-    num_points: int
-    fallback: str | None = None
+    Attributes:
+        submap_id: its id.
+        frames: ``[shared frame] + new keyframes + loop frames`` (no shared frame for a first submap).
+        first_new: slot of the first new keyframe (0 or 1).
+        num_new: number of new keyframes.
+        loops: the retrieved candidates whose loop frame follows the new keyframes, in order.
+    """
+
+    submap_id: int
+    frames: list[Frame]
+    first_new: int
+    num_new: int
+    loops: list[LoopCandidate]
+
+    @property
+    def new_slots(self) -> range:
+        return range(self.first_new, self.first_new + self.num_new)
+
+    @property
+    def last_slot(self) -> int:
+        return self.first_new + self.num_new - 1
+
+    def loop_slot(self, k: int) -> int:
+        return self.first_new + self.num_new + k
+
+    def slot_of(self, frame_index: int) -> int:
+        return next(s for s in self.new_slots if self.frames[s].index == frame_index)
+
+
+@dataclass
+class DenseSubmap:
+    """The frontend's prediction of a submap with what the steps derive from it once.
+
+    Attributes:
+        prediction: the frontend's output.
+        mask: ``(S, H, W)`` confident pixels (``SubmapConfig.tau_conf``).
+        levels: the submap's confidence quantiles (``sl4slam.submap.confidence_levels``).
+        views: ``{slot: FrameView}`` for the frames that are aligned (points at full precision).
+    """
+
+    prediction: SubmapPrediction
+    mask: np.ndarray
+    levels: np.ndarray
+    views: dict[int, FrameView]
 
 
 @dataclass
@@ -53,10 +108,13 @@ class SLAMResult:
         T_world_cam: ``(N, 4, 4)`` keyframe poses (world-from-camera, rigid part of the decomposed
             camera; world units are the first submap's).
         K: ``(N, 3, 3)`` keyframe intrinsics decomposed from the world camera matrices.
-        H_world_submap: optimized graph nodes.
+        H_world_submap: graph nodes (optimized by the final polish, or iSAM2's current estimate
+            for a snapshot).
         T_world_cam_gt: ``(N, 4, 4)`` ground truth for the keyframes, or ``None``.
-        edges: every odometry and loop measurement with its quality.
+        edges: every odometry, loop (accepted or rejected) and segment record.
+        segments: ``(N,)`` int, the map segment of each keyframe (0 unless a segment started).
         stats: counts and timings for the summary.
+        colors: ``keyframe -> (H, W, 3)`` uint8 colours on the prediction grid (re-read from the source).
     """
 
     keyframes: list[StoredKeyframe]
@@ -65,15 +123,34 @@ class SLAMResult:
     H_world_submap: dict[int, np.ndarray]
     T_world_cam_gt: np.ndarray | None
     edges: list[EdgeReport]
+    segments: np.ndarray
     stats: dict = field(default_factory=dict)
+    colors: Callable[[StoredKeyframe], np.ndarray] | None = None
 
     @property
     def timestamps(self) -> np.ndarray:
         return np.array([k.timestamp for k in self.keyframes], dtype=np.float64)
 
+    def keyframe_colors(self, keyframe: StoredKeyframe) -> np.ndarray:
+        """``(H, W, 3)`` uint8 colours of ``keyframe``; mid-grey when they cannot be re-read."""
+        if self.colors is not None:
+            try:
+                return self.colors(keyframe)
+            except UserError as exc:
+                log.warning("keyframe %d: colours unavailable (%s); written grey", keyframe.frame_index, exc)
+        return np.full(keyframe.shape + (3,), 128, dtype=np.uint8)
+
 
 class SLAMPipeline:
     """VGGT-SLAM over a frame source.
+
+    Args:
+        config: every setting; validated here, before any work.
+        frontend: reconstructs a submap's frames.
+        retrieval: proposes loop candidates (``None``: no loop closure).
+        aligner: measures relative transforms (default: the one ``config.alignment`` names).
+        backend: the factor graph (default: the one ``config.backend`` names).
+        on_submap: called as ``on_submap(pipeline, submap_id)`` after every processed submap.
 
     Example::
 
@@ -86,273 +163,401 @@ class SLAMPipeline:
         config: SLAMConfig,
         frontend: Frontend,
         retrieval: Retrieval | None = None,
+        aligner: Aligner | None = None,
+        backend: Backend | None = None,
         on_submap: Callable[["SLAMPipeline", int], None] | None = None,
     ) -> None:
-        check_config(config)
+        config.validate()
         self.config = config
         self.frontend = frontend
         self.retrieval = retrieval
-        self.backend = make_backend(config.backend)
+        self.aligner = aligner if aligner is not None else make_aligner(config)
+        self.backend = backend if backend is not None else make_backend(config.backend)
+        if self.aligner.group == "sl4" and self.backend.kind != "sl4":
+            raise UserError(f"the {self.aligner.model} aligner measures projective transforms, which a "
+                            f"{self.backend.kind} graph cannot hold; use a Sim(3) alignment model")
+        self.loop_verifier = LoopVerifier(config.loops, config.alignment, self.aligner, self.backend, self.edge_information)
         self.selector = KeyframeSelector(config.keyframes)
         self.on_submap = on_submap
         self.keyframes: list[StoredKeyframe] = []
         self._by_frame: dict[int, StoredKeyframe] = {}
         self.edges: list[EdgeReport] = []
-        self.timings: dict[str, float] = defaultdict(float)
+        self.timer = StageTimer()
         self.submap_seconds: list[dict[str, float]] = []
         self.submap_loops: list[int] = []  # loop factors added with each submap
-        self.num_submaps = 0
+        self.num_submaps = 0  # submap ids handed out (failed submaps included)
         self.num_frames = 0
+        self.dropped: dict[str, int] = {"no ground truth": 0, "frontend failed": 0}
+        self.frontend_failures: list[dict] = []
+        self.stop_requested = False
+        self._failures_in_a_row = 0
         self._gt: dict[int, np.ndarray] = {}
         self._prior: Frame | None = None
-        self._prior_points: np.ndarray | None = None  # (H, W, 3) float32, full precision
-        self._prior_mask: np.ndarray | None = None
+        self._prior_view: FrameView | None = None  # the shared frame at full precision
         self._source: FrameSource | None = None
-        self._needs_ground_truth = bool(getattr(frontend, "requires_ground_truth", False))
-        self.frames_without_ground_truth = 0
 
     # ------------------------------------------------------------------ driving
     def run(self, source: FrameSource, progress: bool = True) -> SLAMResult:
-        """Process every frame of ``source`` and return the optimized result."""
-        from tqdm import tqdm
+        """Process every frame of ``source`` (or until :attr:`stop_requested`) and return the result."""
+        self.consume(source, progress)
+        return self.result()
 
+    def consume(self, source: FrameSource, progress: bool = True) -> None:
+        """Feed the frames of ``source`` through keyframe selection and submaps (no final result).
+
+        Raises ``UserError`` for a source the frontend cannot use, and :class:`FrontendFailedError`
+        when the frontend keeps failing (what was processed stays in the pipeline).
+        """
         self._source = source
         total = len(source)
         if self.config.max_frames > 0:
             total = min(total, self.config.max_frames)
         if total < 2:
             raise UserError(f"{source.name}: {total} frame(s) found; SLAM needs at least 2 frames")
+        if self.frontend.requires_ground_truth and not source.has_ground_truth:
+            raise UserError(f"{source.name} has no depth and ground-truth poses, which the {self.frontend.name} frontend "
+                            "needs (an RGB-D sequence: TUM, 7-Scenes or the synthetic world); use --frontend vggt")
         pending: list[Frame] = []
-        bar = tqdm(total=total, unit="frame", disable=not progress, desc="sl4slam", leave=False)
-        start = time.perf_counter()
-        for count, frame in enumerate(source):
-            if count >= total:
-                break
-            if count % max(1, self.config.stride):
-                bar.update(1)
-                continue
-            if self._needs_ground_truth and (frame.depth is None or frame.T_world_cam is None or frame.K is None):
-                # e.g. TUM frames whose depth image is not within 0.02 s: the simulator cannot use them
-                self.frames_without_ground_truth += 1
-                bar.update(1)
-                continue
-            self.num_frames += 1
-            t0 = time.perf_counter()
-            is_keyframe = self.selector.is_keyframe(frame.rgb)
-            self.timings["keyframes"] += time.perf_counter() - t0
-            if is_keyframe:
-                pending.append(frame)
-                if frame.T_world_cam is not None:
-                    self._gt[frame.index] = np.asarray(frame.T_world_cam, dtype=np.float64)
-            if len(pending) == self.config.submap.size:
+        reporter = Progress(total, enabled=progress, every=self.config.output.progress_every)
+        try:
+            for count, frame in enumerate(source):
+                if count >= total or self.stop_requested:
+                    break
+                if count % self.config.stride == 0 and self._select(frame):
+                    pending.append(frame)
+                if len(pending) == self.config.submap.size:
+                    self.process_submap(pending)
+                    pending = []
+                    reporter.submap(count + 1, keyframes=len(self.keyframes), submaps=self.num_submaps, loops=self.num_loops)
+                reporter.frame(keyframes=len(self.keyframes) + len(pending), submaps=self.num_submaps, loops=self.num_loops)
+            if pending and not self.stop_requested:
                 self.process_submap(pending)
-                pending = []
-            bar.update(1)
-            bar.set_postfix(keyframes=len(self.keyframes) + len(pending), submaps=self.num_submaps,
-                            loops=self.num_loops)
-        bar.close()
-        if pending:
-            self.process_submap(pending)
-        if not self.keyframes or len(self.keyframes) < 2:
+        finally:
+            reporter.close()
+        if len(self.keyframes) < 2 and not self.stop_requested:
             raise UserError(
                 f"{source.name}: only {len(self.keyframes)} keyframe(s) selected from {self.num_frames} frames; "
                 "the camera barely moves — lower --tau-disparity or use a longer sequence"
             )
-        result = self.result()
-        result.stats["seconds_total"] = time.perf_counter() - start
-        return result
+
+    def _select(self, frame: Frame) -> bool:
+        """Keyframe decision for one input frame (frames the frontend cannot use are dropped)."""
+        if self.frontend.requires_ground_truth and (frame.depth is None or frame.T_world_cam is None or frame.K is None):
+            self.dropped["no ground truth"] += 1  # e.g. TUM frames without depth within 0.02 s
+            return False
+        self.num_frames += 1
+        with self.timer("keyframes"):
+            is_keyframe = self.selector.is_keyframe(frame.rgb)
+        if is_keyframe and frame.T_world_cam is not None:
+            self._gt[frame.index] = np.asarray(frame.T_world_cam, dtype=np.float64)
+        return is_keyframe
 
     @property
     def num_loops(self) -> int:
-        return sum(1 for e in self.edges if e.kind == "loop")
+        return sum(1 for e in self.edges if e.kind == "loop" and e.accepted)
 
     # ------------------------------------------------------------------ one submap
     def process_submap(self, new_frames: Sequence[Frame]) -> None:
         """Reconstruct, align and optimize one submap of new keyframes."""
-        submap_id = self.num_submaps
-        seconds: dict[str, float] = {}
-        cfg = self.config
-
-        loops_before = self.num_loops
-        t0 = time.perf_counter()
-        described = getattr(self.retrieval, "describe_seconds", 0.0)
-        loops: list[LoopCandidate] = []
-        if self.retrieval is not None and cfg.submap.w_loop > 0:
-            loops = self.retrieval.query(
-                [f.index for f in new_frames], [f.rgb for f in new_frames], submap_id, cfg.submap.w_loop
-            )[: cfg.submap.w_loop]
-            loops = [c for c in loops if c.match_frame in self._by_frame]
+        timer = StageTimer()
+        described = self.retrieval.describe_seconds if self.retrieval is not None else 0.0
+        with timer("retrieval"):
+            work = self.assemble(new_frames)
+        with timer("frontend"):
+            prediction = self.reconstruct(work)
+        if prediction is not None:
+            with timer("points"):
+                dense = self.dense_submap(work, prediction)
+            with timer("alignment"):
+                odometry = self.align_odometry(work, dense)
+            with timer("backend"):
+                self.add_to_graph(work, odometry)
+            with timer("loops"):
+                self.close_loops(work, dense)
+            with timer("store"):
+                self.store(work, dense)
         # descriptor extraction (a model, like the frontend) is reported apart from the search
-        seconds["retrieval_describe"] = getattr(self.retrieval, "describe_seconds", 0.0) - described
-        seconds["retrieval"] = time.perf_counter() - t0 - seconds["retrieval_describe"]
+        seconds = dict(timer.seconds)
+        seconds["retrieval_describe"] = (self.retrieval.describe_seconds if self.retrieval is not None else 0.0) - described
+        seconds["retrieval"] -= seconds["retrieval_describe"]
+        self._account(work, seconds)
 
-        frames: list[Frame] = ([self._prior] if self._prior is not None else []) + list(new_frames)
-        first_new = len(frames) - len(new_frames)
-        loop_frames = [self._source.get(c.match_frame) if self._source is not None else None for c in loops]
-        frames += [f for f in loop_frames if f is not None]
+    def assemble(self, new_frames: Sequence[Frame]) -> SubmapInput:
+        """The submap's frames: the shared frame, the new keyframes, and the loop frames that
+        retrieval proposes (a loop frame that cannot be re-read is rejected here)."""
+        submap_id = self.num_submaps
+        self.num_submaps += 1
+        candidates: list[LoopCandidate] = []
+        if self.retrieval is not None and self.config.submap.w_loop > 0:
+            proposed = self.retrieval.query(list(new_frames), submap_id, self.config.submap.w_loop)
+            candidates = [c for c in proposed[: self.config.submap.w_loop] if c.match_frame in self._by_frame]
+        prior = [self._prior] if self._prior is not None else []
+        frames, loops = prior + list(new_frames), []
+        for candidate in candidates:
+            try:
+                frames.append(self._source.get(candidate.match_frame))
+                loops.append(candidate)
+            except UserError as exc:
+                self._reject_loop(candidate, submap_id, f"the loop frame cannot be read again: {exc}")
+        return SubmapInput(submap_id, frames, len(prior), len(new_frames), loops)
 
-        t0 = time.perf_counter()
-        prediction = self.frontend.reconstruct(frames, submap_id)
-        seconds["frontend"] = time.perf_counter() - t0
-        _check_prediction(prediction, len(frames))
+    def reconstruct(self, work: SubmapInput) -> SubmapPrediction | None:
+        """The frontend's prediction, or ``None`` when it fails on this submap (see the module doc)."""
+        try:
+            prediction = self.frontend.reconstruct(work.frames, work.submap_id)
+            problem = prediction_problem(prediction, len(work.frames))
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except Exception as exc:  # a failing model must not end the run: the submap is skipped
+            problem = f"{type(exc).__name__}: {exc}"
+        if problem is None:
+            self._failures_in_a_row = 0
+            return prediction
+        self._failures_in_a_row += 1
+        self.dropped["frontend failed"] += work.num_new
+        self.frontend_failures.append({"submap": work.submap_id, "reason": problem,
+                                       "keyframes": [f.index for f in work.frames[work.first_new:work.last_slot + 1]]})
+        log.warning("submap %d: the frontend failed (%s); its %d keyframes are skipped", work.submap_id, problem, work.num_new)
+        for candidate in work.loops:
+            self._reject_loop(candidate, work.submap_id, "the frontend failed on this submap")
+        if self._failures_in_a_row >= self.config.max_frontend_failures:
+            raise FrontendFailedError(
+                f"the frontend failed on {self._failures_in_a_row} submaps in a row (last: {problem}); "
+                "check the model weights and the input frames")
+        return None
 
-        t0 = time.perf_counter()
-        mask = confidence_mask(prediction.confidence, prediction.depth, cfg.submap.tau_conf)
-        # Points are needed now only for the frames that are aligned (the shared frame, the last
-        # new keyframe for the next submap, loop frames); the map is rebuilt from stored depth.
-        last = first_new + len(new_frames) - 1
-        needed = sorted({0, last, *range(first_new + len(new_frames), len(frames))})
-        points = dict(zip(needed, submap_points(prediction, cfg.submap.use_point_head, needed)))
-        seconds["points"] = time.perf_counter() - t0
+    def dense_submap(self, work: SubmapInput, prediction: SubmapPrediction) -> DenseSubmap:
+        """Confidence masks for the submap, and points for the frames that are aligned: the shared
+        frame, the last new keyframe (shared with the next submap) and the loop frames. The map is
+        rebuilt from stored depth, so no other frame needs points now."""
+        mask = confidence_mask(prediction.confidence, prediction.depth, self.config.submap.tau_conf)
+        needed = sorted({0, work.last_slot, *range(work.loop_slot(0), len(work.frames))})
+        points = submap_points(prediction, self.config.submap.use_point_head, needed)
+        views = {slot: FrameView(points[k], mask[slot], prediction.K[slot], to_4x4(prediction.T_cam_submap[slot]))
+                 for k, slot in enumerate(needed)}
+        return DenseSubmap(prediction, mask, confidence_levels(prediction.confidence, prediction.depth), views)
 
-        t0 = time.perf_counter()
-        if submap_id == 0:
-            self.backend.add_submap(0, None)
-            seconds["alignment"] = 0.0
-        else:
-            shared = frames[0]
-            prev = self._by_frame[shared.index]
-            alignment = self._align_odometry(
-                self._prior_points, self._prior_mask, points[0], mask[0],
-                (prev.K, prev.T_cam_submap), (prediction.K[0], prediction.T_cam_submap[0]), seed=submap_id,
-            )
-            self._record_edge("odometry", prev.submap_id, submap_id, shared.index, alignment)
-            seconds["alignment"] = time.perf_counter() - t0
-            t1 = time.perf_counter()
-            self.backend.add_submap(submap_id, self._as_node_measurement(alignment.H),
-                                    sigma_scale=cfg.backend.fallback_sigma_scale if alignment.fallback else 1.0)
-            seconds["backend"] = time.perf_counter() - t1
-        t0 = time.perf_counter()
-        for offset, candidate in enumerate(c for c, f in zip(loops, loop_frames) if f is not None):
-            slot = len(new_frames) + first_new + offset
+    def align_odometry(self, work: SubmapInput, dense: DenseSubmap) -> Alignment | str | None:
+        """The measurement to the previous submap from the shared frame: the fit, else the camera
+        edge (as a fallback), else the reason neither can be used. ``None`` for a first submap."""
+        if self._prior_view is None:
+            return None
+        before, after = self._prior_view, dense.views[0]
+        problem = camera_problem(before) or camera_problem(after)
+        if problem:
+            return problem
+        try:
+            alignment = self.aligner.align(before, after, seed=work.submap_id)
+            problem = edge_problem(alignment, self.config.alignment)
+        except ValueError as exc:
+            problem = str(exc)
+        if problem is None:
+            return alignment
+        try:
+            edge = self.aligner.camera_edge(before, after)
+        except ValueError as exc:
+            return f"{problem}; the camera edge failed too: {exc}"
+        weak = edge_problem(edge, self.config.alignment, fitted=False)
+        if weak:
+            return f"{problem}; the camera edge failed too: {weak}"
+        edge.fallback = f"alignment failed ({problem}); used the shared frame's cameras and depth"
+        return edge
+
+    def add_to_graph(self, work: SubmapInput, odometry: Alignment | str | None) -> None:
+        """Add the submap's node with its odometry edge, or as the start of a new map segment."""
+        submap_id = work.submap_id
+        if odometry is None and self.backend.num_submaps == 0:
+            self.backend.add_submap(submap_id, None)
+            self.backend.update()
+            return
+        relative = np.eye(4)  # where a new segment starts relative to the last node, without a measurement
+        if isinstance(odometry, Alignment):
+            previous = self._by_frame[self._prior.index].submap_id
+            self.edges.append(EdgeReport.measured("odometry", previous, submap_id, self._prior.index, odometry))
+            if odometry.fallback:
+                log.info("submap %d->%d: %s", previous, submap_id, odometry.fallback)
+            relative = self._graph_measurement(odometry.H)
+            self.backend.add_submap(submap_id, relative, self.edge_information(odometry))
+            try:
+                self.backend.update()
+                return
+            except BackendUpdateError as exc:
+                odometry = f"the graph could not be solved with this edge ({exc})"
+                self.edges[-1].accepted, self.edges[-1].reason = False, odometry
+        reason = odometry if isinstance(odometry, str) else "no shared frame with an earlier submap"
+        self._start_segment(submap_id, reason, relative)
+
+    def close_loops(self, work: SubmapInput, dense: DenseSubmap) -> None:
+        """Verify every loop candidate (``sl4slam.loops``) and add the accepted ones to the graph."""
+        odometry_ratios = [e.inlier_ratio for e in self.edges if e.kind == "odometry" and e.accepted and not e.fallback]
+        added: list[EdgeReport] = []
+        for k, candidate in enumerate(work.loops):
             old = self._by_frame[candidate.match_frame]
             try:
-                alignment = self._align(
-                    old.points(), old.mask(), points[slot], mask[slot], (old.K, old.T_cam_submap),
-                    (prediction.K[slot], prediction.T_cam_submap[slot]), seed=submap_id * 1000 + offset + 1,
-                )
-            except ValueError as exc:
-                log.info("loop %d->%d rejected: %s", old.submap_id, submap_id, exc)
+                evidence = self._loop_evidence(work, dense, candidate, k)
+                decision = self.loop_verifier.verify(old.submap_id, work.submap_id, evidence, odometry_ratios,
+                                                     seed=work.submap_id * 1000 + k + 1)
+            except (KeyboardInterrupt, SystemExit):
+                raise
+            except Exception as exc:  # a loop never ends a run
+                self._reject_loop(candidate, work.submap_id, f"{type(exc).__name__}: {exc}")
                 continue
-            if alignment.inlier_ratio < self._loop_inlier_gate() or alignment.fallback:
-                log.info("loop %d->%d rejected: inlier ratio %.2f", old.submap_id, submap_id, alignment.inlier_ratio)
+            if not decision.accepted:
+                self._reject_loop(candidate, work.submap_id, decision.reason, decision.alignment, decision.checks)
                 continue
-            self._record_edge("loop", old.submap_id, submap_id, candidate.match_frame, alignment)
-            self.backend.add_loop(old.submap_id, submap_id, self._as_node_measurement(alignment.H))
-        seconds["loops"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        self.backend.update()
-        seconds["backend"] = seconds.get("backend", 0.0) + time.perf_counter() - t0
+            report = EdgeReport.measured("loop", old.submap_id, work.submap_id, candidate.match_frame, decision.alignment,
+                                         query_frame=candidate.query_frame, checks=decision.checks)
+            self.edges.append(report)
+            added.append(report)
+            self.backend.add_loop(old.submap_id, work.submap_id, self._graph_measurement(decision.alignment.H),
+                                  decision.information)
+        if added:
+            try:
+                self.backend.update()
+            except BackendUpdateError as exc:
+                for report in added:
+                    report.accepted, report.reason = False, f"the graph could not be solved with the loops ({exc})"
+                log.info("submap %d: loops dropped: %s", work.submap_id, exc)
 
-        t0 = time.perf_counter()
-        for slot in range(first_new, first_new + len(new_frames)):
-            frame = frames[slot]
-            stored = StoredKeyframe.from_prediction(prediction, mask, slot, frame.index, frame.timestamp, submap_id)
+    def store(self, work: SubmapInput, dense: DenseSubmap) -> None:
+        """Keep the new keyframes compactly, the last one as the next submap's shared frame, and
+        hand them to retrieval."""
+        for slot in work.new_slots:
+            frame = work.frames[slot]
+            stored = StoredKeyframe.from_prediction(dense.prediction, dense.mask, dense.levels, slot, frame.index,
+                                                    frame.timestamp, work.submap_id)
             self.keyframes.append(stored)
             self._by_frame[frame.index] = stored
-        self._prior = frames[last]
-        self._prior_points = points[last]
-        self._prior_mask = mask[last]
+        self._prior = work.frames[work.last_slot]
+        self._prior_view = dense.views[work.last_slot]
         if self.retrieval is not None:
-            self.retrieval.add([f.index for f in new_frames], [f.rgb for f in new_frames], submap_id)
-        seconds["store"] = time.perf_counter() - t0
+            self.retrieval.add(work.frames[work.first_new:work.last_slot + 1], work.submap_id)
 
+    # ------------------------------------------------------------------ helpers of the steps
+    def edge_information(self, alignment: Alignment) -> np.ndarray:
+        """Information matrix of an edge measured by ``alignment`` (``sl4slam.backend.evidence``)."""
+        return edge_information(alignment, self.backend.generators(), self.config.backend)
+
+    def _graph_measurement(self, H: np.ndarray) -> np.ndarray:
+        return normalize_sl4(H) if self.backend.kind == "sl4" else H
+
+    def _start_segment(self, submap_id: int, reason: str, relative: np.ndarray) -> None:
+        """Add the node with a weak prior at ``H_world_last @ relative`` (the rejected measurement
+        when it was usable, else the last node's frame)."""
+        last = self.keyframes[-1].submap_id
+        self.backend.start_segment(submap_id, self.backend.H_world_submap(last) @ relative)
+        self.backend.update()
+        self.edges.append(EdgeReport(kind="segment", submap_from=last, submap_to=submap_id,
+                                     frame_index=self._prior.index if self._prior is not None else -1,
+                                     accepted=False, reason=reason))
+        log.warning("submap %d starts a new map segment: %s", submap_id, reason)
+
+    def _loop_evidence(self, work: SubmapInput, dense: DenseSubmap, candidate: LoopCandidate, k: int) -> LoopEvidence:
+        slot, query = work.loop_slot(k), work.slot_of(candidate.query_frame)
+        prediction = dense.prediction
+        return LoopEvidence(
+            old=self._by_frame[candidate.match_frame].view(), new=dense.views[slot],
+            grey_new=grey_for_check(prediction.colors[slot]), query_depth=prediction.depth[query],
+            query_mask=dense.mask[query], query_grey=grey_for_check(prediction.colors[query]),
+            query_K=prediction.K[query], query_T_cam_submap=to_4x4(prediction.T_cam_submap[query]))
+
+    def _reject_loop(self, candidate: LoopCandidate, submap_id: int, reason: str, alignment: Alignment | None = None,
+                     checks: dict | None = None) -> None:
+        old = self._by_frame[candidate.match_frame].submap_id
+        if alignment is not None:
+            report = EdgeReport.measured("loop", old, submap_id, candidate.match_frame, alignment,
+                                         query_frame=candidate.query_frame, accepted=False, reason=reason, checks=checks or {})
+        else:
+            report = EdgeReport(kind="loop", submap_from=old, submap_to=submap_id, frame_index=candidate.match_frame,
+                                query_frame=candidate.query_frame, accepted=False, reason=reason)
+        self.edges.append(report)
+        log.info("loop %d->%d rejected: %s", old, submap_id, reason)
+
+    def _account(self, work: SubmapInput, seconds: dict[str, float]) -> None:
         for key, value in seconds.items():
-            self.timings[key] += value
+            self.timer.seconds[key] += value
         self.submap_seconds.append(seconds)
-        self.submap_loops.append(self.num_loops - loops_before)
-        self.num_submaps += 1
+        self.submap_loops.append(sum(1 for e in self.edges if e.kind == "loop" and e.accepted and e.submap_to == work.submap_id))
         if self.on_submap is not None:
-            self.on_submap(self, submap_id)
-
-    def _align(self, X_a_map, mask_a, X_b_map, mask_b, camera_a, camera_b, seed: int) -> Alignment:
-        """``H_a_b`` from one frame's pixels seen in submaps a and b (confident in both).
-
-        ``camera_a`` / ``camera_b`` are that frame's ``(K, T_cam_submap)`` in each submap.
-        """
-        both = np.flatnonzero(mask_a & mask_b)
-        limit = self.config.alignment.max_correspondences
-        if limit > 0 and len(both) > limit:
-            both = both[:: -(-len(both) // limit)]  # evenly strided over the frame
-        X_a = X_a_map.reshape(-1, 3)[both].astype(np.float64)
-        X_b = X_b_map.reshape(-1, 3)[both].astype(np.float64)
-        if len(X_a) < MIN_ALIGNMENT_POINTS:
-            raise UserError(
-                f"only {len(X_a)} confident pixels shared between submaps; the frontend's confidence is too "
-                "low everywhere — lower --tau-conf or check the input images"
-            )
-        (K_a, T_cam_a), (K_b, T_cam_b) = camera_a, camera_b
-        if self.config.backend.kind == "sim3":
-            return sim3_from_shared_frame(T_cam_a, T_cam_b, X_a, X_b, self.config.alignment.inlier_threshold)
-        # the alignment combines config.alignment.seed with this per-edge seed
-        alignment = estimate_sl4(X_a, X_b, self.config.alignment, seed=seed)
-        if alignment.fallback is None:
-            return alignment
-        # Degenerate 15-DOF fit (e.g. a planar shared frame): the frame's two cameras supply the
-        # constraints the points lack; keep it when it explains at least as many points.
-        constrained = camera_constrained_sl4(
-            X_a, X_b, K_a @ to_4x4(T_cam_a)[:3], K_b @ to_4x4(T_cam_b)[:3], alignment.H, self.config.alignment)
-        if constrained is not None and constrained.inlier_ratio >= alignment.inlier_ratio:
-            constrained.fallback = f"{alignment.fallback}; used the camera-constrained projective fit"
-            return constrained
-        return alignment
-
-    def _align_odometry(self, *args, **kwargs) -> Alignment:
-        try:
-            return self._align(*args, **kwargs)
-        except ValueError as exc:
-            raise UserError(f"cannot align consecutive submaps: {exc}") from None
-
-    def _loop_inlier_gate(self) -> float:
-        """Inlier ratio a loop alignment must reach: ``min_loop_inlier_ratio``, or half the median
-        ratio of the odometry so far when the model fits consecutive submaps worse than that
-        (Sim(3) under a projective distortion): a loop must fit about as well as odometry does."""
-        odometry = [e.inlier_ratio for e in self.edges if e.kind == "odometry" and not e.fallback]
-        gate = self.config.retrieval.min_loop_inlier_ratio
-        return min(gate, 0.5 * float(np.median(odometry))) if odometry else gate
-
-    def _as_node_measurement(self, H: np.ndarray) -> np.ndarray:
-        if self.config.backend.kind == "sl4":
-            return normalize_sl4(H)
-        return H
-
-    def _record_edge(self, kind: str, a: int, b: int, frame_index: int, alignment: Alignment) -> None:
-        self.edges.append(EdgeReport(
-            kind=kind, submap_from=a, submap_to=b, frame_index=frame_index, model=alignment.model,
-            inlier_ratio=float(alignment.inlier_ratio), rms=float(alignment.rms),
-            num_points=int(alignment.inliers.size), fallback=alignment.fallback,
-        ))
-        if alignment.fallback:
-            log.info("submap %d->%d: %s", a, b, alignment.fallback)
+            self.on_submap(self, work.submap_id)
 
     # ------------------------------------------------------------------ results
     def result(self) -> SLAMResult:
         """Poses and intrinsics of every stored keyframe under the polished graph estimate
-        (``final_estimates``: a batch polish of the whole graph, O(submaps), so call it at the end)."""
+        (``final_estimates``: a batch polish of the whole graph, O(submaps), so call it at the end),
+        upgraded to a metric frame when ``config.upgrade`` allows (``sl4slam.upgrade``)."""
         start = time.perf_counter()
-        H_world_submap = self.backend.final_estimates()  # batch polish of the whole graph, once per result
-        final_seconds = time.perf_counter() - start
-        T_world_cam, K = keyframe_cameras(self.keyframes, H_world_submap)
+        H_world_submap = self.backend.final_estimates()
+        optimized = time.perf_counter()
+        H_world_submap, upgrades = self.metric_upgrade(H_world_submap)
+        result = self._result(H_world_submap)
+        result.stats["seconds_final_optimization"] = round(optimized - start, 5)
+        result.stats["metric_upgrade"] = upgrades
+        return result
+
+    def snapshot(self, metric_upgrade: bool = False) -> SLAMResult:
+        """The result under iSAM2's current estimate (no polish): for checkpoints and live viewers;
+        ``metric_upgrade`` also upgrades it (about 0.1 s for 500 keyframes)."""
+        H_world_submap = self.backend.estimates()
+        if metric_upgrade:
+            H_world_submap, _ = self.metric_upgrade(H_world_submap)
+        return self._result(H_world_submap)
+
+    def metric_upgrade(self, H_world_submap: dict[int, np.ndarray]) -> tuple[dict[int, np.ndarray], list[dict]]:
+        """Upgrade each map segment to a metric frame (one ``H_metric_world`` per segment, applied to
+        its nodes: every pose and map point follows). Returns the nodes and one summary per segment."""
+        from .upgrade import estimate_metric_upgrade
+
+        keyframes = [k for k in self.keyframes if k.submap_id in H_world_submap]
+        if not keyframes:
+            return H_world_submap, []
+        starts = self.backend.segments
+        segment_of = np.searchsorted(starts, [k.submap_id for k in keyframes], side="right") - 1
+        nodes, summaries = dict(H_world_submap), []
+        for segment in np.unique(segment_of):
+            members = [k for k, s in zip(keyframes, segment_of) if s == segment]
+            P = world_cameras(members, H_world_submap)
+            upgrade = estimate_metric_upgrade(P, np.stack([k.principal_point for k in members]), self.config.upgrade,
+                                              image_sizes=np.array([k.shape[::-1] for k in members]))
+            summaries.append({"segment": int(segment), **upgrade.summary()})
+            if upgrade.applied:
+                for submap_id in {k.submap_id for k in members}:
+                    nodes[submap_id] = upgrade.H_metric_world @ H_world_submap[submap_id]
+            log.info("metric upgrade of segment %d: %s", segment, upgrade.reason)
+        return nodes, summaries
+
+    def _result(self, H_world_submap: dict[int, np.ndarray]) -> SLAMResult:
+        keyframes = [k for k in self.keyframes if k.submap_id in H_world_submap]
+        T_world_cam, K = keyframe_cameras(keyframes, H_world_submap)
         gt = None
-        if self.keyframes and all(k.frame_index in self._gt for k in self.keyframes):
-            gt = np.stack([self._gt[k.frame_index] for k in self.keyframes])
-        fallbacks = [e for e in self.edges if e.fallback]
+        if keyframes and all(k.frame_index in self._gt for k in keyframes):
+            gt = np.stack([self._gt[k.frame_index] for k in keyframes])
+        starts = self.backend.segments
+        segments = np.searchsorted(starts, [k.submap_id for k in keyframes], side="right") - 1
         stats = {
             "frames": self.num_frames,
-            "keyframes": len(self.keyframes),
+            "keyframes": len(keyframes),
             "submaps": self.num_submaps,
             "loops": self.num_loops,
-            "fallbacks": len(fallbacks),
-            "frames_without_ground_truth": self.frames_without_ground_truth,
-            "seconds_by_stage": dict(self.timings),
-            "seconds_final_optimization": round(final_seconds, 5),
-            "stored_bytes": int(sum(k.nbytes for k in self.keyframes)),
+            "loops_rejected": sum(1 for e in self.edges if e.kind == "loop" and not e.accepted),
+            "fallbacks": sum(1 for e in self.edges if e.fallback and e.accepted and e.kind == "odometry"),
+            "segments": int(segments.max()) + 1 if len(segments) else 0,
+            "dropped_frames": dict(self.dropped),
+            "frontend_failures": list(self.frontend_failures),
+            "seconds_by_stage": dict(self.timer.seconds),
+            "stored_bytes": int(sum(k.nbytes for k in keyframes)),
             "seconds_per_submap": {
                 stage: round(float(np.median([s.get(stage, 0.0) for s in self.submap_seconds])), 5)
                 for stage in sorted({k for s in self.submap_seconds for k in s})
             },
         }
-        return SLAMResult(self.keyframes, T_world_cam, K, H_world_submap, gt, list(self.edges), stats)
+        return SLAMResult(keyframes, T_world_cam, K, H_world_submap, gt, list(self.edges), segments, stats,
+                          colors=self._colors)
+
+    def _colors(self, keyframe: StoredKeyframe) -> np.ndarray:
+        if self._source is None:
+            raise UserError("no frame source to read colours from")
+        return self.frontend.grid_colors(self._source.get(keyframe.frame_index))
 
 
 def keyframe_cameras(keyframes: Sequence[StoredKeyframe], H_world_submap: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -362,32 +567,23 @@ def keyframe_cameras(keyframes: Sequence[StoredKeyframe], H_world_submap: dict[i
     """
     if not keyframes:
         return np.zeros((0, 4, 4)), np.zeros((0, 3, 3))
-    H_inv = {i: np.linalg.inv(H) for i, H in H_world_submap.items()}
-    P = np.stack([k.K @ to_4x4(k.T_cam_submap)[:3] @ H_inv[k.submap_id] for k in keyframes])
+    P = world_cameras(keyframes, H_world_submap)
     K, T_world_cam, _ = decompose_projection(P)
     return T_world_cam, K
 
 
-def check_config(config: SLAMConfig) -> None:
-    """Raise ``UserError`` for settings the pipeline cannot run with (cheap: call it before loading models)."""
-    if config.submap.size < 1:
-        raise UserError("--submap-size must be at least 1")
-    if config.backend.kind not in ("sl4", "sim3"):
-        raise UserError(f"unknown backend '{config.backend.kind}': use --backend sl4 or --backend sim3")
-    validate_backend_config(config.backend)
-    alignment = config.alignment
-    if alignment.ransac_iterations < 1:
-        raise UserError(f"--ransac-iterations must be at least 1, got {alignment.ransac_iterations}")
-    if not 0.0 < alignment.ransac_confidence < 1.0:
-        raise UserError(f"--ransac-confidence must be between 0 and 1 (exclusive), got {alignment.ransac_confidence}")
-    if not (np.isfinite(alignment.inlier_threshold) and alignment.inlier_threshold > 0):
-        raise UserError(f"--ransac-inlier-threshold must be a positive number, got {alignment.inlier_threshold}")
+def world_cameras(keyframes: Sequence[StoredKeyframe], H_world_submap: dict[int, np.ndarray]) -> np.ndarray:
+    """``(N, 3, 4)`` camera matrices ``K [R|t] H_world_submap^-1`` of keyframes in the world frame."""
+    H_inv = {i: np.linalg.inv(H) for i, H in H_world_submap.items()}
+    return np.stack([k.K @ k.T_cam_submap[:3] @ H_inv[k.submap_id] for k in keyframes])
 
 
-def _check_prediction(prediction: SubmapPrediction, num_frames: int) -> None:
+def prediction_problem(prediction: SubmapPrediction, num_frames: int) -> str | None:
+    """Why a frontend's output cannot be used (wrong frame count, non-finite values), or ``None``."""
     S = prediction.depth.shape[0]
     if S != num_frames:
-        raise UserError(f"frontend returned {S} frames for a submap of {num_frames}; the frontend is misconfigured")
+        return f"it returned {S} frames for a submap of {num_frames}"
     for name in ("depth", "confidence", "T_cam_submap", "K"):
         if not np.all(np.isfinite(getattr(prediction, name))):
-            raise UserError(f"frontend returned non-finite {name}; check the model weights and input images")
+            return f"it returned non-finite {name}"
+    return None

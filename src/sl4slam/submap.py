@@ -2,8 +2,10 @@
 
 A submap's frames are ``[prior frame] + new keyframes + loop frames``. Only the new keyframes are
 kept after alignment (the prior frame is kept by the submap where it was new, loop frames by
-theirs), each in a compact form: float16 depth, uint8 colour, a bit-packed confidence mask and the
-frame's camera — about 0.8 MB per keyframe at 518x294.
+theirs), each in a compact form: float16 depth, a bit-packed confidence mask, a half-resolution
+uint8 confidence rank and the frame's camera — 0.33 MB per keyframe at 518x294. Colours are not
+kept: the frontend re-derives them from the source frame when the map is written
+(``Frontend.grid_colors``).
 """
 
 from __future__ import annotations
@@ -13,7 +15,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import to_4x4, unproject_depth
-from .types import SubmapPrediction
+from .types import FrameView, SubmapPrediction
+
+RANK_LEVELS = 255
+"""Confidence ranks are stored as uint8: 0..255 spans the submap's 0..100th percentile."""
+RANK_SAMPLES = 50_000
+"""Confidence values (an evenly strided subset of the submap) that set the rank levels."""
+
+
+def valid_pixels(confidence: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """``(S, H, W)`` bool: finite, positive depth with a finite confidence."""
+    return np.isfinite(depth) & (depth > 0) & np.isfinite(confidence)
 
 
 def confidence_mask(confidence: np.ndarray, depth: np.ndarray, percentile: float) -> np.ndarray:
@@ -22,7 +34,7 @@ def confidence_mask(confidence: np.ndarray, depth: np.ndarray, percentile: float
     Keeps pixels whose confidence is strictly above the submap's own ``percentile`` of confidence
     (over all its frames, as in VGGT-SLAM) and whose depth is finite and positive.
     """
-    valid = np.isfinite(depth) & (depth > 0) & np.isfinite(confidence)
+    valid = valid_pixels(confidence, depth)
     if not valid.any() or percentile <= 0:
         return valid
     values = confidence[valid]
@@ -31,6 +43,16 @@ def confidence_mask(confidence: np.ndarray, depth: np.ndarray, percentile: float
     k = min(len(values) - 1, int(round(percentile / 100.0 * (len(values) - 1))))
     threshold = np.partition(values, k)[k]
     return valid & (confidence > threshold)
+
+
+def confidence_levels(confidence: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """``(RANK_LEVELS,)`` confidence values at the submap's 1/255 .. 255/255 quantiles (of its valid
+    pixels, from an evenly strided subset): ``searchsorted`` against them gives a uint8 rank."""
+    values = confidence[valid_pixels(confidence, depth)]
+    if len(values) == 0:
+        return np.full(RANK_LEVELS, np.inf, dtype=np.float32)
+    values = values[:: max(1, len(values) // RANK_SAMPLES)]
+    return np.quantile(values, np.arange(1, RANK_LEVELS + 1) / (RANK_LEVELS + 1)).astype(np.float32)
 
 
 def submap_points(prediction: SubmapPrediction, use_point_head: bool = False, slots=None) -> np.ndarray:
@@ -53,9 +75,11 @@ class StoredKeyframe:
         submap_id: the submap in which this frame was a new keyframe.
         slot: its position in that submap's frame list.
         depth: ``(H, W)`` float16 depth in submap units.
-        colors: ``(H, W, 3)`` uint8.
         mask_bits: bit-packed ``(H, W)`` confidence mask.
+        confidence_rank: ``(ceil(H / 2), ceil(W / 2))`` uint8 percentile of each pixel's confidence
+            in its submap (0..255 for 0..100 %), every second pixel in each direction.
         K: ``(3, 3)`` float64 intrinsics; T_cam_submap: ``(4, 4)`` float64 extrinsics.
+        principal_point: ``(2,)`` float64 the principal point the frontend assumes (pixels).
     """
 
     frame_index: int
@@ -63,25 +87,35 @@ class StoredKeyframe:
     submap_id: int
     slot: int
     depth: np.ndarray
-    colors: np.ndarray
     mask_bits: np.ndarray
+    confidence_rank: np.ndarray
     K: np.ndarray
     T_cam_submap: np.ndarray
+    principal_point: np.ndarray
 
     @classmethod
     def from_prediction(
-        cls, prediction: SubmapPrediction, mask: np.ndarray, slot: int, frame_index: int, timestamp: float, submap_id: int
+        cls, prediction: SubmapPrediction, mask: np.ndarray, levels: np.ndarray, slot: int, frame_index: int,
+        timestamp: float, submap_id: int,
     ) -> "StoredKeyframe":
+        """Keep frame ``slot`` of a submap; ``mask`` ``(S, H, W)`` and ``levels`` from
+        :func:`confidence_mask` and :func:`confidence_levels` of the same submap."""
+        height, width = prediction.depth.shape[1:]
+        if prediction.principal_point is not None:
+            principal_point = np.asarray(prediction.principal_point[slot], dtype=np.float64)
+        else:  # VGGT's convention: the centre of the prediction grid
+            principal_point = np.array([width / 2.0, height / 2.0])
         return cls(
             frame_index=int(frame_index),
             timestamp=float(timestamp),
             submap_id=int(submap_id),
             slot=int(slot),
             depth=prediction.depth[slot].astype(np.float16),
-            colors=np.ascontiguousarray(prediction.colors[slot], dtype=np.uint8),
             mask_bits=np.packbits(mask[slot]),
+            confidence_rank=np.searchsorted(levels, prediction.confidence[slot, ::2, ::2]).astype(np.uint8),
             K=np.asarray(prediction.K[slot], dtype=np.float64),
             T_cam_submap=to_4x4(prediction.T_cam_submap[slot]),
+            principal_point=principal_point,
         )
 
     @property
@@ -93,10 +127,23 @@ class StoredKeyframe:
         H, W = self.shape
         return np.unpackbits(self.mask_bits, count=H * W).reshape(H, W).astype(bool)
 
+    def confidence_percentile(self) -> np.ndarray:
+        """``(H, W)`` float32 percentile (0..100) of each pixel's confidence in its submap
+        (nearest of the stored half-resolution ranks)."""
+        H, W = self.shape
+        full = np.repeat(np.repeat(self.confidence_rank, 2, axis=0), 2, axis=1)[:H, :W]
+        return full.astype(np.float32) * (100.0 / RANK_LEVELS)
+
     def points(self) -> np.ndarray:
         """``(H, W, 3)`` float32 points in the submap frame."""
         return unproject_depth(self.depth[None].astype(np.float32), self.K[None], self.T_cam_submap[None])[0]
 
+    def view(self) -> FrameView:
+        """This keyframe as a :class:`FrameView` of its own submap (float16-rounded depth; see
+        ``benchmarks/bench_robustness.py`` for why that precision suffices for loop alignment)."""
+        return FrameView(self.points(), self.mask(), self.K, self.T_cam_submap)
+
     @property
     def nbytes(self) -> int:
-        return int(self.depth.nbytes + self.colors.nbytes + self.mask_bits.nbytes + self.K.nbytes + self.T_cam_submap.nbytes)
+        return int(sum(a.nbytes for a in (self.depth, self.mask_bits, self.confidence_rank, self.K, self.T_cam_submap,
+                                          self.principal_point)))

@@ -1,12 +1,13 @@
 """Records and stage interfaces shared by every part of the pipeline.
 
-Shapes and frames follow DESIGN.md: ``T_a_b`` maps points in frame ``b`` to frame ``a``;
+Shapes and frames follow docs/architecture.md: ``T_a_b`` maps points in frame ``b`` to frame ``a``;
 images are ``(H, W, 3)`` uint8 RGB; geometry is float64, dense per-pixel data float32 (or
 smaller when stored).
 """
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Iterator, Protocol, Sequence, runtime_checkable
 
@@ -40,11 +41,16 @@ class Frame:
 class FrameSource(Protocol):
     """A finite, re-readable sequence of frames (image folder, video, TUM, 7-Scenes, in memory).
 
-    ``skipped`` lists inputs that could not be read (one human-readable entry each).
+    Attributes:
+        name: for messages.
+        skipped: inputs that could not be read (one human-readable entry each).
+        has_ground_truth: the frames come with depth, a ground-truth pose and intrinsics (RGB-D
+            datasets), as the simulated frontend needs.
     """
 
     name: str
     skipped: list[str]
+    has_ground_truth: bool
 
     def __len__(self) -> int: ...
 
@@ -73,6 +79,9 @@ class SubmapPrediction:
         points: optional ``(S, H, W, 3)`` float32 point map in the submap frame (VGGT's point
             head); the pipeline unprojects ``depth`` unless told to use this.
         points_confidence: optional ``(S, H, W)`` float32 confidence of ``points``.
+        principal_point: optional ``(S, 2)`` float64, the principal point the frontend assumes for
+            each frame on the prediction grid (VGGT: the grid centre ``(W/2, H/2)``); the
+            projective-to-metric upgrade constrains the cameras to it.
     """
 
     depth: np.ndarray
@@ -82,6 +91,7 @@ class SubmapPrediction:
     colors: np.ndarray
     points: np.ndarray | None = None
     points_confidence: np.ndarray | None = None
+    principal_point: np.ndarray | None = None
 
     @property
     def num_frames(self) -> int:
@@ -90,9 +100,16 @@ class SubmapPrediction:
 
 @runtime_checkable
 class Frontend(Protocol):
-    """Feed-forward reconstruction of a short window of frames into one submap."""
+    """Feed-forward reconstruction of a short window of frames into one submap.
+
+    Attributes:
+        name: for messages and caches.
+        requires_ground_truth: the frontend reads depth and poses from the frames (the simulator);
+            the pipeline skips frames without them, and refuses sources that have none.
+    """
 
     name: str
+    requires_ground_truth: bool
 
     def reconstruct(self, frames: Sequence[Frame], submap_id: int) -> SubmapPrediction:
         """Reconstruct ``frames`` (in order; the first defines the submap frame).
@@ -100,6 +117,16 @@ class Frontend(Protocol):
         ``submap_id`` lets stochastic frontends (the simulator) draw reproducible,
         submap-specific noise; deterministic models ignore it.
         """
+        ...
+
+    def prepare(self) -> None:
+        """Load what the frontend needs (weights) before any frame is read; ``UserError`` if it
+        cannot be had."""
+        ...
+
+    def grid_colors(self, frame: Frame) -> np.ndarray:
+        """``(H, W, 3)`` uint8 colours of ``frame`` on the prediction grid (as in
+        ``SubmapPrediction.colors``), so the map can be coloured without keeping every image."""
         ...
 
 
@@ -118,18 +145,19 @@ class Retrieval(Protocol):
     """Place recognition over stored keyframes.
 
     The pipeline calls ``query`` with the new keyframes of submap ``submap_id`` before the
-    frontend runs, then ``add`` with the same keyframes. Implementations exclude the latest
+    frontend runs, then ``add`` with the same keyframes (as :class:`Frame` records: an
+    implementation uses their index and image; simulation wrappers may read their ground truth). Implementations exclude the latest
     ``tau_interval`` stored submaps (ids ``> submap_id - 1 - tau_interval``), reject matches
     whose distance is not below their threshold, and return the best candidates first.
     """
 
     name: str
+    describe_seconds: float
+    """Time spent computing descriptors (a model, like the frontend), reported apart from search."""
 
-    def add(self, frame_indices: Sequence[int], images: Sequence[np.ndarray], submap_id: int) -> None: ...
+    def add(self, frames: Sequence[Frame], submap_id: int) -> None: ...
 
-    def query(
-        self, frame_indices: Sequence[int], images: Sequence[np.ndarray], submap_id: int, max_results: int
-    ) -> list[LoopCandidate]: ...
+    def query(self, frames: Sequence[Frame], submap_id: int, max_results: int) -> list[LoopCandidate]: ...
 
 
 @dataclass
@@ -138,12 +166,15 @@ class Alignment:
 
     Attributes:
         H: ``(4, 4)`` float64; in SL(4) (det = +1) for the projective model, a similarity
-            ``[sR t; 0 1]`` for the Sim(3) model (then det = s^3, not normalized).
+            ``[sR t; 0 1]`` for the Sim(3) models (then det = s^3, not normalized).
         inliers: ``(N,)`` bool over the input correspondences.
         inlier_ratio: fraction of inliers.
         rms: root-mean-square residual of the inliers, in the units of ``X_a``.
         model: "sl4" or "sim3": the model actually fitted.
-        fallback: why a constrained model replaced the requested one, or ``None``.
+        fallback: why a constrained or weaker model replaced the requested one, or ``None``.
+        extras: statistics of the estimator.
+        support: an evenly strided subset of the inlier pairs ``(X_a (M, 3), X_b (M, 3))``, kept
+            to weigh the edge by its evidence; ``None`` when the estimate used no points.
     """
 
     H: np.ndarray
@@ -153,3 +184,54 @@ class Alignment:
     model: str
     fallback: str | None = None
     extras: dict = field(default_factory=dict)
+    support: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def num_inliers(self) -> int:
+        return int(self.inliers.sum())
+
+
+@dataclass
+class FrameView:
+    """One frame as reconstructed in one submap: what aligning two submaps needs of it.
+
+    Attributes:
+        points: ``(H, W, 3)`` float32 points in the submap frame.
+        mask: ``(H, W)`` bool, the confident pixels.
+        K: ``(3, 3)`` float64 intrinsics; T_cam_submap: ``(4, 4)`` float64 extrinsics.
+    """
+
+    points: np.ndarray
+    mask: np.ndarray
+    K: np.ndarray
+    T_cam_submap: np.ndarray
+
+    @property
+    def camera(self) -> np.ndarray:
+        """``(3, 4)`` camera matrix ``K [R | t]`` in the submap frame."""
+        return self.K @ np.asarray(self.T_cam_submap, dtype=np.float64)[:3]
+
+
+class Aligner(ABC):
+    """Measures ``H_a_b`` between two submaps from one frame reconstructed in both.
+
+    Attributes:
+        model: what it fits ("sl4", "sim3-points", "sim3-cameras").
+        group: the group of its measurements ("sl4" or "sim3"), which the graph must hold.
+    """
+
+    model: str = ""
+    group: str = ""
+
+    @abstractmethod
+    def align(self, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
+        """``X_a ~ H_a_b X_b`` from the frame's pixels confident in both views.
+
+        Raises ``ValueError`` when the views share too few usable pixels or the fit degenerates.
+        """
+
+    @abstractmethod
+    def camera_edge(self, view_a: FrameView, view_b: FrameView) -> Alignment:
+        """The weaker measurement that needs no point fit: the frame's two cameras and the median
+        ratio of its depths (used when :meth:`align` fails). Raises ``ValueError`` only when the
+        cameras themselves are unusable."""

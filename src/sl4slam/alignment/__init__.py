@@ -1,5 +1,7 @@
 """Relative alignment of submaps from a shared frame's points (paper 4.2).
 
+- :func:`make_aligner`: the pipeline's alignment stage (:class:`SL4Aligner`,
+  :class:`Sim3PointAligner` or :class:`Sim3CameraAligner`, by ``AlignmentConfig.model``).
 - :func:`estimate_sl4`: 15-DOF projective ``H_a_b`` (SL(4)) by 5-point DLT in RANSAC, with a
   Sim(3) fallback when the projective fit is degenerate.
 - :func:`estimate_sim3`: 7-DOF similarity by 3-point Umeyama in RANSAC.
@@ -10,12 +12,18 @@
 - :func:`dlt_sl4` / :func:`minimal_sl4_batch`: the least-squares and batched minimal DLT solvers.
 """
 
+from .aligner import SL4Aligner, Sim3CameraAligner, Sim3PointAligner, make_aligner, shared_pixels
 from .camera_constrained import camera_constrained_sl4
 from .dlt import dlt_design_matrix, dlt_sl4, minimal_sl4_batch, normalize_points
 from .ransac import estimate_sim3, estimate_sl4
-from .sim3 import sim3_from_shared_frame, umeyama_sim3_batch
+from .sim3 import sim3_from_shared_frame
 
 __all__ = [
+    "SL4Aligner",
+    "Sim3CameraAligner",
+    "Sim3PointAligner",
+    "make_aligner",
+    "shared_pixels",
     "camera_constrained_sl4",
     "dlt_design_matrix",
     "dlt_sl4",
@@ -24,5 +32,4 @@ __all__ = [
     "minimal_sl4_batch",
     "normalize_points",
     "sim3_from_shared_frame",
-    "umeyama_sim3_batch",
 ]

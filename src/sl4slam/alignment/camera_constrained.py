@@ -17,12 +17,9 @@ import numpy as np
 from ..config import AlignmentConfig
 from ..geometry import normalize_sl4, sl4_valid
 from ..types import Alignment
-from .ransac import clean_correspondences, score_one
-
-RIDGE = 1e-6
-# Relative planarity below which the points' plane leaves one direction of H unobserved.
-PLANAR = 0.02
-ITERATIONS = 6
+from .common import clean_correspondences, make_alignment
+from .dlt import fix_sign_by_w
+from .ransac import score_one
 
 
 def camera_constrained_sl4(
@@ -39,7 +36,7 @@ def camera_constrained_sl4(
         X_a, X_b: ``(N, 3)`` the frame's points in submaps a and b (NaN rows ignored).
         P_a, P_b: ``(3, 4)`` the frame's camera matrices in submaps a and b.
         H_guess: ``(4, 4)`` an initial map (e.g. a Sim(3) fit) selecting the particular solution.
-        config: inlier threshold and minimum inlier count.
+        config: inlier threshold, minimum inlier count, reweighting rounds, ridge and planarity.
 
     Returns:
         An ``Alignment`` (model "sl4") or ``None`` when no valid SL(4) map results.
@@ -65,51 +62,45 @@ def camera_constrained_sl4(
     H = H_p
     d_norm2 = (d * d).sum(axis=1)  # (N,)
     d_dot_g = (d * g).sum(axis=1)  # (N,)
-    for iteration in range(ITERATIONS):
+    iterations = int(config.camera_constrained_iterations)
+    for iteration in range(iterations):
         # Normal equations of min sum w^2 |g + (x_b . v) d|^2 over the points in use, formed
         # directly as 4x4 sums: A^T A = sum w^2 |d|^2 x_b x_b^T, A^T b = sum w^2 (d . g) x_b.
         w2 = np.where(use, weights * weights, 0.0)
         AtA = (x_b * (w2 * d_norm2)[:, None]).T @ x_b
         Atb = x_b.T @ (w2 * d_dot_g)
-        v = -np.linalg.solve(AtA + RIDGE * np.trace(AtA) / 4 * np.eye(4), Atb)
+        v = -np.linalg.solve(AtA + config.camera_constrained_ridge * np.trace(AtA) / 4 * np.eye(4), Atb)
         H = H_p + np.outer(c_a, v)
-        if np.linalg.det(H) < 0:  # keep the sign convention w > 0 before judging det
-            H = -H
+        H = fix_sign_by_w(H, X_b_c)  # H and -H are one map: keep w > 0 on the points (det cannot tell them apart)
         _, inliers, r2 = score_one(H, X_a_c, X_b_c, threshold)
         w_now = x_b @ H[3]
         weights = 1.0 / np.maximum(np.abs(w_now), 1e-9)
         # Shrink the fitting set towards the inliers gradually, so early outliers cannot lock in.
         median_r2 = float(np.partition(r2, len(r2) // 2)[len(r2) // 2])
-        cut = max(threshold, np.sqrt(median_r2)) * (4.0 if iteration < ITERATIONS // 2 else 1.0)
+        cut = max(threshold, np.sqrt(median_r2)) * (4.0 if iteration < iterations // 2 else 1.0)
         use = (r2 < cut**2) & (w_now > 0)
         if use.sum() < 4:
             return None
     if not sl4_valid(H) or inliers.sum() < config.min_inliers:
         return None
-    H = _least_perspective(H, c_a, X_b_c[inliers])
+    H = _least_perspective(H, c_a, X_b_c[inliers], config.planarity_threshold)
     _, inliers, r2 = score_one(H, X_a_c, X_b_c, threshold)
     if not sl4_valid(H) or inliers.sum() < config.min_inliers:
         return None
-    H = normalize_sl4(H)
-    count = int(inliers.sum())
-    full = np.zeros(len(finite), dtype=bool)
-    full[np.flatnonzero(finite)] = inliers
-    return Alignment(
-        H=H, inliers=full, inlier_ratio=count / len(finite), rms=float(np.sqrt(r2[inliers].mean())),
-        model="sl4", fallback=None, extras={"camera_constrained": True},
-    )
+    return make_alignment(normalize_sl4(H), X_a_c, X_b_c, finite, inliers, r2, "sl4", extras={"camera_constrained": True})
 
 
-def _least_perspective(H: np.ndarray, c_a: np.ndarray, X_plane: np.ndarray) -> np.ndarray:
+def _least_perspective(H: np.ndarray, c_a: np.ndarray, X_plane: np.ndarray, planar: float) -> np.ndarray:
     """Within the unobserved family ``H + mu c_a pi^T`` (points on plane ``pi``), the member whose
     perspective row is smallest relative to its last entry: consecutive submaps' distortions are
     both near identity, so their relative map has a small perspective part.
 
-    Returns ``H`` unchanged when the points are not planar (nothing is unobserved).
+    Returns ``H`` unchanged when the points are not planar (smallest / largest singular value of
+    the centred points above ``planar``: nothing is unobserved).
     """
     centre = X_plane.mean(axis=0)
     _, sing, Vt = np.linalg.svd(X_plane - centre, full_matrices=False)
-    if sing[-1] > PLANAR * sing[0]:
+    if sing[-1] > planar * sing[0]:
         return H
     normal = Vt[-1]
     pi = np.append(normal, -normal @ centre)  # pi . [X; 1] = 0 on the plane

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import normalize_sl4, sl4_valid
+from .common import clean_correspondences
 
 # Smallest / largest singular value of a minimal 15x16 system below which its null space is not
 # one-dimensional (e.g. four of the five points coplanar, or a repeated point).
@@ -100,7 +101,7 @@ def dlt_sl4(X_a: np.ndarray, X_b: np.ndarray, weights: np.ndarray | None = None)
     """Least-squares projective map ``H_a_b`` with ``X_a ~ H_a_b X_b``, normalized into SL(4).
 
     Args:
-        X_a: ``(N, 3)`` points in frame ``a``; N >= 5, not all coplanar.
+        X_a: ``(N, 3)`` points in frame ``a``; N >= 5, not all coplanar; NaN/Inf rows are ignored.
         X_b: ``(N, 3)`` the same points in frame ``b``.
         weights: optional ``(N,)`` non-negative weights of each point's squared algebraic error
             (``1 / w^2`` from a previous estimate turns it into the transfer error in ``a``).
@@ -109,16 +110,11 @@ def dlt_sl4(X_a: np.ndarray, X_b: np.ndarray, weights: np.ndarray | None = None)
         ``(4, 4)`` float64 ``H_a_b`` with det = +1 and ``w > 0`` on most points.
 
     Raises:
-        ValueError: fewer than 5 points, non-finite input, or a degenerate fit (det <= 0).
+        ValueError: fewer than 5 finite points, or a degenerate fit (det <= 0).
     """
-    X_a = np.asarray(X_a, dtype=np.float64)
-    X_b = np.asarray(X_b, dtype=np.float64)
-    if X_a.shape != X_b.shape or X_a.ndim != 2 or X_a.shape[1] != 3:
-        raise ValueError(f"dlt_sl4 needs two (N, 3) arrays of equal shape, got {X_a.shape} and {X_b.shape}")
-    if len(X_a) < 5:
-        raise ValueError(f"dlt_sl4 needs at least 5 correspondences, got {len(X_a)}")
-    if not (np.isfinite(X_a).all() and np.isfinite(X_b).all()):
-        raise ValueError("dlt_sl4 got non-finite points")
+    X_a, X_b, finite = clean_correspondences(X_a, X_b, 5, "SL(4) DLT")
+    if weights is not None:
+        weights = np.asarray(weights, dtype=np.float64)[finite]
     X_a_n, T_a = normalize_points(X_a)
     X_b_n, T_b = normalize_points(X_b)
     H = np.linalg.solve(T_a, dlt_homogeneous(X_a_n, X_b_n, weights) @ T_b)  # undo the normalizations

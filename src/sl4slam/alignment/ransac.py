@@ -31,68 +31,20 @@ from typing import Callable
 import numpy as np
 
 from ..config import AlignmentConfig
-from ..geometry import normalize_sl4, umeyama_sim3
+from ..geometry import normalize_sl4, umeyama_sim3, umeyama_sim3_batch
 from ..types import Alignment
+from .common import clean_correspondences, make_alignment
 from .dlt import dlt_homogeneous, fix_sign_by_w, minimal_sl4_batch, normalize_points
-from .sim3 import umeyama_sim3_batch
 
-PREEMPTIVE_POINTS = 1024
-"""Correspondences of the preemptive scoring round (every valid hypothesis is scored on them)."""
-PREEMPTIVE_KEEP = 0.1
-"""Fraction of hypotheses (at least ``PREEMPTIVE_MIN_KEEP``) scored on the full subset."""
-PREEMPTIVE_MIN_KEEP = 8
-HYPOTHESIS_BATCH = 50
-"""Hypotheses drawn, solved and scored together before the adaptive stopping test: 50 five-point
-samples contain an all-inlier one with probability 0.999 from about 2/3 inliers, so a
-well-aligned pair needs one batch instead of all 300."""
-EARLY_STOP_SPREAD = 0.5
-"""The SL(4) sampling may stop early only if the best hypothesis' inliers keep at least this
-fraction of the points' planarity (see ``estimate_sl4``)."""
-REFIT_ROUNDS = 5
-"""Most refit / re-score rounds after RANSAC; they stop earlier once the inlier set stops
-changing or the cost stops decreasing by more than ``REFIT_MIN_GAIN``."""
-REFIT_MIN_GAIN = 1e-3
-"""Relative MSAC cost decrease below which another refit is not worth it: the remaining rounds
-only trade points on the threshold's edge (seen on the synthetic world: ~5 rounds of <0.1 %
-each, with no visible change of the estimate)."""
 SCORE_BLOCK = 1 << 21
-"""Hypothesis x point entries scored at once (bounds the temporary memory to ~100 MB)."""
-SMALL_SET = 4096
-"""Up to this many points, samples are drawn without repetition by permuting all indices."""
+"""Hypothesis x point entries scored at once (bounds the temporary memory to ~100 MB; no effect
+on results)."""
 
 Solver = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
 # --------------------------------------------------------------------------------------------
 # Shared machinery
-
-
-def clean_correspondences(X_a: np.ndarray, X_b: np.ndarray, minimum: int, model: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Drop rows with NaN/Inf in either set.
-
-    Args:
-        X_a, X_b: ``(N, 3)`` corresponding points.
-        minimum: fewest finite correspondences the model can use.
-        model: model name for the error message.
-
-    Returns:
-        ``(X_a, X_b)`` finite rows as float64 and the ``(N,)`` bool mask of kept rows.
-
-    Raises:
-        ValueError: shapes disagree, or fewer than ``minimum`` finite rows remain.
-    """
-    X_a = np.asarray(X_a, dtype=np.float64)
-    X_b = np.asarray(X_b, dtype=np.float64)
-    if X_a.shape != X_b.shape or X_a.ndim != 2 or X_a.shape[1] != 3:
-        raise ValueError(f"{model} alignment needs two (N, 3) point arrays of equal shape, got {X_a.shape} and {X_b.shape}")
-    finite = np.isfinite(X_a).all(axis=1) & np.isfinite(X_b).all(axis=1)
-    count = int(finite.sum())
-    if count < minimum:
-        raise ValueError(
-            f"{model} alignment needs at least {minimum} finite correspondences, got {count} of {len(X_a)}; "
-            "the shared frame has too few confident points"
-        )
-    return X_a[finite], X_b[finite], finite
 
 
 def transfer_errors(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -159,9 +111,13 @@ def score_one(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray, threshold: float)
     return float(np.where(inliers, r2, thr2).sum()), inliers, r2
 
 
-def draw_samples(num_points: int, sample_size: int, num_samples: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Index samples ``(num_samples, sample_size)`` and a mask of samples without repeated indices."""
-    if num_points <= SMALL_SET:
+def draw_samples(
+    num_points: int, sample_size: int, num_samples: int, rng: np.random.Generator, small_set: int = 4096
+) -> tuple[np.ndarray, np.ndarray]:
+    """Index samples ``(num_samples, sample_size)`` and a mask of samples without repeated indices.
+
+    Up to ``small_set`` points, each sample is a prefix of a random permutation (no repeats)."""
+    if num_points <= small_set:
         order = rng.permuted(np.broadcast_to(np.arange(num_points), (num_samples, num_points)), axis=1)
         return order[:, :sample_size], np.ones(num_samples, dtype=bool)
     samples = rng.integers(0, num_points, size=(num_samples, sample_size))
@@ -181,7 +137,7 @@ def ransac_best(
 ) -> tuple[np.ndarray | None, dict]:
     """Batched, adaptive hypothesize-and-score; returns the lowest-cost hypothesis (or None) and statistics.
 
-    Hypotheses come in batches of ``HYPOTHESIS_BATCH`` (one solver call and one scoring pass each).
+    Hypotheses come in batches of ``config.hypothesis_batch`` (one solver call and one scoring pass each).
     After every batch the best hypothesis' inlier fraction ``w`` on the scoring subset updates the
     number of samples needed to have drawn an all-inlier sample with probability
     ``config.ransac_confidence``; drawing stops there, and never goes beyond
@@ -202,14 +158,15 @@ def ransac_best(
     scored = rng.permutation(N)[: config.max_points]  # random order: any prefix is a random subset
     # Ranking hypotheses needs far less precision than float64 (errors ~1e-7 vs a 1e-2 threshold).
     sub_a, sub_b = X_a[scored].astype(np.float32), X_b[scored].astype(np.float32)
-    preemptive = len(scored) > 2 * PREEMPTIVE_POINTS
+    preemptive_points = int(config.preemptive_points)
+    preemptive = len(scored) > 2 * preemptive_points
     limit = int(config.ransac_iterations)
     needed = float(limit)
     stats = {"hypotheses": 0, "degenerate_samples": 0, "fully_scored_hypotheses": 0, "scored_points": int(len(scored))}
     best_H, best_cost = None, np.inf
     while stats["hypotheses"] < min(limit, needed):
-        count = min(HYPOTHESIS_BATCH, limit - stats["hypotheses"])
-        samples, distinct = draw_samples(N, sample_size, count, rng)
+        count = min(int(config.hypothesis_batch), limit - stats["hypotheses"])
+        samples, distinct = draw_samples(N, sample_size, count, rng, int(config.small_set))
         H, valid = solver(X_a[samples], X_b[samples])
         valid &= distinct
         stats["hypotheses"] += count
@@ -217,9 +174,9 @@ def ransac_best(
         if not valid.any():
             continue
         H = H[valid]
-        keep = max(PREEMPTIVE_MIN_KEEP, int(np.ceil(PREEMPTIVE_KEEP * len(H))))
+        keep = max(int(config.preemptive_min_keep), int(np.ceil(config.preemptive_keep * len(H))))
         if preemptive and len(H) > keep:
-            costs, _ = msac_costs(H, sub_a[:PREEMPTIVE_POINTS], sub_b[:PREEMPTIVE_POINTS], threshold)
+            costs, _ = msac_costs(H, sub_a[:preemptive_points], sub_b[:preemptive_points], threshold)
             H = H[np.argpartition(costs, keep - 1)[:keep]]
         stats["fully_scored_hypotheses"] += int(len(H))
         costs, counts = msac_costs(H, sub_a, sub_b, threshold)
@@ -242,12 +199,13 @@ def refine(
     threshold: float,
     fit: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
     min_points: int,
-    max_fit_points: int = 0,
+    config: AlignmentConfig,
 ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, int]:
-    """Least-squares refit on the inliers, re-score on all points, repeat while the inlier set
-    changes and the cost drops by at least ``REFIT_MIN_GAIN`` (relative).
+    """Least-squares refit on the inliers, re-score on all points, repeat (at most
+    ``config.refit_rounds`` times) while the inlier set changes and the cost drops by at least
+    ``config.refit_min_gain`` (relative).
 
-    With ``max_fit_points > 0`` the fit uses an evenly strided subset of at most that many
+    With ``config.max_refit_points > 0`` the fit uses an evenly strided subset of at most that many
     inliers (dense points are spatially ordered, so the subset covers the frame evenly): the
     estimate is as good for a fraction of the cost; scoring always uses every point.
 
@@ -261,7 +219,8 @@ def refine(
     """
     cost, inliers, r2 = score_one(H, X_a, X_b, threshold)
     accepted = 0
-    for _ in range(REFIT_ROUNDS):
+    max_fit_points = int(config.max_refit_points)
+    for _ in range(int(config.refit_rounds)):
         if inliers.sum() < min_points:
             break
         chosen = np.flatnonzero(inliers)
@@ -275,7 +234,7 @@ def refine(
         if not cost_new < cost:
             break
         # same inlier set, or a negligible gain: another refit would only nudge the 1/w^2 weights
-        settled = np.array_equal(inliers_new, inliers) or cost - cost_new < REFIT_MIN_GAIN * cost
+        settled = np.array_equal(inliers_new, inliers) or cost - cost_new < config.refit_min_gain * cost
         H, cost, inliers, r2 = H_new, cost_new, inliers_new, r2_new
         accepted += 1
         if settled:
@@ -298,18 +257,6 @@ def planarity(X: np.ndarray, max_points: int = 20000) -> float:
     low, high = np.quantile(along, [0.1, 0.9], axis=0)
     spread = high - low
     return float(spread[0] / spread[1]) if spread[1] > 0 else 0.0
-
-
-def _rms(r2: np.ndarray, inliers: np.ndarray) -> float:
-    """RMS of the inliers' errors; of all errors when there is no inlier (the ratio says why)."""
-    values = r2[inliers] if inliers.any() else r2
-    return float(np.sqrt(values.mean())) if len(values) else 0.0
-
-
-def _full_mask(finite: np.ndarray, inliers: np.ndarray) -> np.ndarray:
-    mask = np.zeros(len(finite), dtype=bool)
-    mask[np.flatnonzero(finite)] = inliers
-    return mask
 
 
 def _rng(config: AlignmentConfig, seed: int) -> np.random.Generator:
@@ -347,17 +294,9 @@ def estimate_sim3(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, see
     H, stats = ransac_best(X_a, X_b, umeyama_sim3_batch, 3, threshold, config, rng)
     if H is None:
         raise ValueError("Sim(3) alignment failed: every 3-point sample is collinear; the shared frame's points are degenerate")
-    H, _, inliers, r2, refits = refine(H, X_a, X_b, threshold, _fit_sim3, 3, config.max_refit_points)
+    H, _, inliers, r2, refits = refine(H, X_a, X_b, threshold, _fit_sim3, 3, config)
     stats.update(refits=refits, dropped_nonfinite=int(len(finite) - finite.sum()), seconds=time.perf_counter() - start)
-    return Alignment(
-        H=H,
-        inliers=_full_mask(finite, inliers),
-        inlier_ratio=float(inliers.sum() / len(finite)),
-        rms=_rms(r2, inliers),
-        model="sim3",
-        fallback=None,
-        extras=stats,
-    )
+    return make_alignment(H, X_a, X_b, finite, inliers, r2, "sim3", extras=stats)
 
 
 # --------------------------------------------------------------------------------------------
@@ -427,7 +366,7 @@ def estimate_sl4(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, seed
     # Only a hypothesis whose inliers are about as three-dimensional as the points may end the
     # sampling early: one that explains just a dominant plane (and calls the rest outliers) is the
     # near-degenerate case where more samples find the full 15-DOF map.
-    spread_needed = max(config.planarity_threshold, EARLY_STOP_SPREAD * flatness)
+    spread_needed = max(config.planarity_threshold, config.early_stop_spread * flatness)
 
     def well_spread(inliers_b: np.ndarray) -> bool:
         return len(inliers_b) >= config.min_inliers and planarity(inliers_b, config.max_points) >= spread_needed
@@ -437,8 +376,7 @@ def estimate_sl4(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, seed
     if H_n is None:
         return fallback("every 5-point sample degenerate")
     if config.refit:
-        H_n, _, inliers, r2, refits = refine(
-            H_n, X_a_n, X_b_n, threshold_n, _fit_sl4, max(config.min_inliers, 5), config.max_refit_points)
+        H_n, _, inliers, r2, refits = refine(H_n, X_a_n, X_b_n, threshold_n, _fit_sl4, config.min_inliers, config)
     else:
         _, inliers, r2 = score_one(H_n, X_a_n, X_b_n, threshold_n)
         refits = 0
@@ -453,12 +391,4 @@ def estimate_sl4(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, seed
     if inlier_flatness < config.planarity_threshold:
         return fallback(f"inliers nearly coplanar (planarity {inlier_flatness:.3g} < {config.planarity_threshold})")
     stats["seconds"] = time.perf_counter() - start
-    return Alignment(
-        H=H,
-        inliers=_full_mask(finite, inliers),
-        inlier_ratio=float(count / len(finite)),
-        rms=_rms(r2, inliers),
-        model="sl4",
-        fallback=None,
-        extras=stats,
-    )
+    return make_alignment(H, X_a, X_b, finite, inliers, r2, "sl4", extras=stats)

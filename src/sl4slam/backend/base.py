@@ -18,76 +18,42 @@ the paper's error element. Since ``Log(E^-1) = -Log(E)``, that is the paper's re
 (exactly for Sim(3), whose chart is ``Log``; to second order in the residual for SL(4), whose chart
 in GTSAM is the first-order ``Vee(E^-1 - I)``). The tests check this numerically.
 
+Noise. Each factor takes an information matrix in the tangent coordinates of its measurement
+(``Z exp(xi)``, GTSAM's convention); ``None`` means the isotropic ``BackendConfig.sigma``.
+``sl4slam.backend.evidence`` derives it from the alignment's own inliers.
+
+Map segments. A measurement that fails its checks, or an update that GTSAM cannot solve, never
+ends a run: :meth:`Backend.start_segment` adds the node with a weak prior (``segment_sigma``) at a
+guess instead of an odometry factor, and a failed update is rolled back (the graph is rebuilt
+without the factors of that update) before raising :class:`BackendUpdateError`.
+
 The graph is optimized with iSAM2: a pure odometry step only eliminates the newest clique, so its
 cost does not grow with the map. A loop factor makes iSAM2 re-eliminate the path from the loop's
 older node to the root, and relinearize every variable whose step exceeds the threshold; both
-follow the loop's span. Two thresholds keep that work small: variables are relinearized once
-their step exceeds 1e-2 (tangent coordinates, a fifth of the default sigma; GTSAM's default is
-0.1), and after a loop iSAM2 iterates only while some step exceeds 5e-2 (one sigma),
-i.e. when the loop corrects real drift. On a 300-submap run that keeps closing loops to its first
-lap, the median of the last 50 updates is 3 ms, against 25 ms when iterating to 1e-5 (same
-machine, cold caches). The estimate then sits within about 1e-4 (relative) of the optimal graph
-error; :meth:`final_estimates` removes that once, at the end of a run, with a batch Gauss-Newton
-polish of the whole graph. (GTSAM's SL(4) chart is first-order, so near the optimum the graph
-error is flat to about 1e-5 relative and solutions differ by ~1e-4 in their entries: beyond that,
-"converged" has no meaning.)
+follow the loop's span. Two thresholds keep that work small (``BackendConfig``): variables are
+relinearized once their step exceeds ``relinearize_threshold`` (1e-2), and after a loop iSAM2
+iterates only while some step exceeds ``loop_step_threshold`` (5e-2), i.e. when the loop
+corrects real drift. The estimate then sits within about 1e-4 (relative) of the optimal graph
+error; :meth:`FactorGraphBackend.final_estimates` removes that once, at the end of a run, with a
+batch Gauss-Newton polish of the whole graph. (GTSAM's SL(4) chart is first-order, so near the
+optimum the graph error is flat to about 1e-5 relative and solutions differ by ~1e-4 in their
+entries: beyond that, "converged" has no meaning.)
 """
 
 from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import gtsam
 import numpy as np
 
 from ..config import BackendConfig
-from ..errors import UserError
-
-LOOP_KERNELS = ("none", "huber", "cauchy")
 
 
-@runtime_checkable
-class Backend(Protocol):
-    """Pose graph over submap transforms ``H_world_submap`` (4x4, float64)."""
-
-    last_update_seconds: float
-    """Wall time of the most recent :meth:`update` call, in seconds."""
-
-    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, sigma_scale: float = 1.0) -> None:
-        """Add a node; ``H_prev_cur`` (4, 4) maps this submap's points into the previous submap.
-
-        The first submap takes ``None`` and is anchored at the identity. ``sigma_scale``
-        multiplies the factor's sigma (a less certain measurement, e.g. a degenerate fit).
-        """
-
-    def add_loop(self, i: int, j: int, H_i_j: np.ndarray) -> None:
-        """Add a loop closure ``x_i ~ H_i_j x_j`` (4, 4) between existing submaps ``i`` and ``j``."""
-
-    def update(self) -> None:
-        """Optimize incrementally with everything added since the last call."""
-
-    def H_world_submap(self, submap_id: int) -> np.ndarray:
-        """Current estimate of one node, (4, 4) float64."""
-
-    def estimates(self) -> dict[int, np.ndarray]:
-        """Current estimate of every node: ``{submap_id: (4, 4) float64}``."""
-
-    def final_estimates(self) -> dict[int, np.ndarray]:
-        """Every node optimized to convergence (for the end of a run; may cost O(map))."""
-
-
-def validate_backend_config(config: BackendConfig) -> None:
-    """Raise ``UserError`` for settings the backend cannot run with."""
-    if config.kind not in ("sl4", "sim3"):
-        raise UserError(f"unknown backend kind '{config.kind}': use 'sl4' or 'sim3'")
-    if config.loop_kernel not in LOOP_KERNELS:
-        raise UserError(f"unknown loop kernel '{config.loop_kernel}': use one of {', '.join(LOOP_KERNELS)}")
-    for name in ("sigma", "prior_sigma", "loop_kernel_width"):
-        value = getattr(config, name)
-        if not (np.isfinite(value) and value > 0):
-            raise UserError(f"backend {name} must be a positive number, got {value}")
+class BackendUpdateError(RuntimeError):
+    """GTSAM could not solve the graph with the latest factors; they were removed again."""
 
 
 def check_matrix(name: str, M: Any) -> np.ndarray:
@@ -100,66 +66,110 @@ def check_matrix(name: str, M: Any) -> np.ndarray:
     return M
 
 
-class FactorGraphBackend(ABC):
-    """Incremental (iSAM2) pose graph; subclasses fix the group (SL(4) or Sim(3)).
+class Backend(ABC):
+    """Pose graph over submap transforms ``H_world_submap`` (4x4, float64): the interface the
+    pipeline talks to.
 
-    Args:
-        config: sigmas and the loop kernel (``BackendConfig``).
-        relinearize_threshold: iSAM2 relinearizes a variable whose tangent step exceeds this
-            (max-abs, in the group's tangent coordinates). See the module docstring for the
-            choice of 1e-3.
-        wildfire_threshold: iSAM2 stops back-substitution below this change of the step; small, so
-            that :meth:`H_world_submap` agrees with :meth:`estimates` after a loop.
-        loop_step_threshold: after loop factors arrive, iSAM2 iterates (relinearizing) while some
-            tangent step still exceeds this. A loop that agrees with the map moves it by less, and
-            its remaining small steps are taken by the following updates and the final polish,
-            so consistent revisits cost one iSAM2 step; a loop that corrects real drift is
-            absorbed at once.
-        max_loop_iterations: cap on those extra iterations.
+    Attributes:
+        kind: the group ("sl4" or "sim3"); dim: its tangent dimension (15 or 7).
+        last_update_seconds: wall time of the most recent :meth:`update` call.
     """
 
     kind: str = ""
     dim: int = 0
+    last_update_seconds: float = 0.0
 
-    def __init__(
-        self,
-        config: BackendConfig,
-        *,
-        relinearize_threshold: float = 1e-2,
-        wildfire_threshold: float = 1e-9,
-        loop_step_threshold: float = 5e-2,
-        max_loop_iterations: int = 30,
-    ) -> None:
-        validate_backend_config(config)
+    @abstractmethod
+    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, information: np.ndarray | None = None) -> None:
+        """Add a node; ``H_prev_cur`` (4, 4) maps this submap's points into the previously added
+        submap's. The first submap takes ``None`` and is anchored at the identity. ``information``
+        ``(dim, dim)`` is the measurement's (``None``: the isotropic default)."""
+
+    @abstractmethod
+    def start_segment(self, submap_id: int, H_world_guess: np.ndarray) -> None:
+        """Add a node without odometry: a weak prior at ``H_world_guess`` starts a new map segment."""
+
+    @abstractmethod
+    def add_loop(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray | None = None) -> None:
+        """Add a loop closure ``x_i ~ H_i_j x_j`` (4, 4) between existing submaps ``i`` and ``j``."""
+
+    @abstractmethod
+    def update(self) -> None:
+        """Optimize incrementally with everything added since the last call; on failure roll the
+        additions back and raise :class:`BackendUpdateError`."""
+
+    @abstractmethod
+    def H_world_submap(self, submap_id: int) -> np.ndarray:
+        """Current estimate of one node, (4, 4) float64."""
+
+    @abstractmethod
+    def estimates(self) -> dict[int, np.ndarray]:
+        """Current estimate of every node: ``{submap_id: (4, 4) float64}``."""
+
+    @abstractmethod
+    def final_estimates(self) -> dict[int, np.ndarray]:
+        """Every node optimized to convergence (for the end of a run; may cost O(map))."""
+
+    @property
+    @abstractmethod
+    def num_submaps(self) -> int:
+        """Nodes in the graph."""
+
+    @property
+    @abstractmethod
+    def segments(self) -> list[int]:
+        """First submap of every map segment, ascending (the first is the first node's)."""
+
+    @abstractmethod
+    def generators(self) -> np.ndarray:
+        """``(dim, 4, 4)`` the tangent basis of the group (``Hat`` of the unit vectors), in which
+        information matrices are expressed."""
+
+    @abstractmethod
+    def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray) -> float:
+        """Squared Mahalanobis distance of the loop ``H_i_j`` from the current estimate, under the
+        joint covariance of nodes ``i``, ``j`` plus the measurement's own (``information^-1``)."""
+
+
+class FactorGraphBackend(Backend):
+    """Incremental (iSAM2) pose graph; subclasses fix the group (SL(4) or Sim(3)).
+
+    Args:
+        config: sigmas, the loop kernel and iSAM2's thresholds (``BackendConfig``).
+    """
+
+    def __init__(self, config: BackendConfig) -> None:
+        config.validate()
         self.config = config
-        self.relinearize_threshold = relinearize_threshold
-        self.loop_step_threshold = loop_step_threshold
-        self.max_loop_iterations = max_loop_iterations
-
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(relinearize_threshold)
-        params.relinearizeSkip = 1
-        gauss_newton = gtsam.ISAM2GaussNewtonParams()
-        gauss_newton.setWildfireThreshold(wildfire_threshold)
-        params.setOptimizationParams(gauss_newton)
-        self._isam = gtsam.ISAM2(params)
-
-        self._odometry_noise = gtsam.noiseModel.Isotropic.Sigma(self.dim, config.sigma)
+        self._isam = self._new_isam()
         self._prior_noise = gtsam.noiseModel.Isotropic.Sigma(self.dim, config.prior_sigma)
-        self._loop_noise = self._robust(self._odometry_noise)
+        self._segment_noise = gtsam.noiseModel.Isotropic.Sigma(self.dim, config.segment_sigma)
 
         self._order: list[int] = []  # submap ids in insertion order
         self._known: set[int] = set()
+        self._segments: list[int] = []  # first submap of every segment
         self._pending_factors = gtsam.NonlinearFactorGraph()
         self._pending_values = gtsam.Values()
         self._pending_loops = 0
+        self._pending_ids: list[int] = []
+        # Everything iSAM2 holds, with the initial guesses, so a failed update can be undone.
+        self._committed_factors = gtsam.NonlinearFactorGraph()
+        self._committed_values = gtsam.Values()
         self._last_estimate: np.ndarray | None = None  # of the newest submap, seeds the next guess
 
         self.num_loops = 0
         self.num_updates = 0
-        self.last_update_seconds = 0.0
         self.total_update_seconds = 0.0
         self.last_update_iterations = 0
+
+    def _new_isam(self) -> gtsam.ISAM2:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        params.relinearizeSkip = 1
+        gauss_newton = gtsam.ISAM2GaussNewtonParams()
+        gauss_newton.setWildfireThreshold(self.config.wildfire_threshold)
+        params.setOptimizationParams(gauss_newton)
+        return gtsam.ISAM2(params)
 
     # ------------------------------------------------------------------ group hooks
     @abstractmethod
@@ -186,8 +196,19 @@ class FactorGraphBackend(ABC):
     def _prior_factor(self, key: int, Z: Any, noise: Any) -> Any:
         """GTSAM prior factor."""
 
+    @abstractmethod
+    def _estimate_one(self, key: int) -> Any:
+        """iSAM2's current estimate of one variable (no full back-substitution)."""
+
+    @abstractmethod
+    def _hat(self, xi: np.ndarray) -> np.ndarray:
+        """Tangent vector ``(dim,)`` -> Lie algebra element ``(4, 4)`` (GTSAM's ``Hat``)."""
+
     def _inverse(self, M: np.ndarray) -> np.ndarray:
         return np.linalg.inv(M)
+
+    def generators(self) -> np.ndarray:
+        return np.stack([self._hat(row) for row in np.eye(self.dim)])
 
     # ------------------------------------------------------------------ graph building
     @staticmethod
@@ -195,13 +216,21 @@ class FactorGraphBackend(ABC):
         """GTSAM key of a submap node."""
         return gtsam.symbol("s", int(submap_id))
 
-    def _robust(self, base: Any) -> Any:
-        kernel, width = self.config.loop_kernel, self.config.loop_kernel_width
-        if kernel == "none":
+    def noise_model(self, information: np.ndarray | None, loop: bool = False) -> Any:
+        """GTSAM noise of a measurement: Gaussian with this information (None: isotropic ``sigma``),
+        wrapped in the loop kernel for loops."""
+        if information is None:
+            base = gtsam.noiseModel.Isotropic.Sigma(self.dim, self.config.sigma)
+        else:
+            information = np.asarray(information, dtype=np.float64)
+            if information.shape != (self.dim, self.dim) or not np.isfinite(information).all():
+                raise ValueError(f"information must be a finite {self.dim}x{self.dim} matrix")
+            base = gtsam.noiseModel.Gaussian.Information(0.5 * (information + information.T))
+        kernel = self.config.loop_kernel
+        if not loop or kernel == "none":
             return base
         estimators = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}
-        estimator = estimators[kernel]
-        return gtsam.noiseModel.Robust.Create(estimator.Create(width), base)
+        return gtsam.noiseModel.Robust.Create(estimators[kernel].Create(self.config.loop_kernel_width), base)
 
     def relative_factor(self, i: int, j: int, H_i_j: np.ndarray, noise: Any) -> Any:
         """Factor with residual (up to sign) ``Log(H_world_i^-1 H_world_j H_i_j^-1)``; see module doc."""
@@ -213,7 +242,21 @@ class FactorGraphBackend(ABC):
             raise ValueError(f"submap id must be a non-negative integer, got {submap_id!r}")
         return int(submap_id)
 
-    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, sigma_scale: float = 1.0) -> None:
+    def _check_new(self, submap_id: int) -> int:
+        submap_id = self._check_id(submap_id)
+        if submap_id in self._known:
+            raise ValueError(f"submap {submap_id} was already added")
+        return submap_id
+
+    def _insert(self, submap_id: int, guess: np.ndarray, factor: Any) -> None:
+        self._pending_factors.push_back(factor)
+        self._pending_values.insert(self.key(submap_id), self._to_gtsam(guess))
+        self._order.append(submap_id)
+        self._known.add(submap_id)
+        self._pending_ids.append(submap_id)
+        self._last_estimate = guess
+
+    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, information: np.ndarray | None = None) -> None:
         """Add a node for ``submap_id``.
 
         Args:
@@ -221,33 +264,31 @@ class FactorGraphBackend(ABC):
             H_prev_cur: (4, 4) map from this submap's frame to the previously added submap's frame
                 (``x_prev ~ H_prev_cur x_cur``); ``None`` for the first submap, which gets the prior
                 at the identity. The initial guess is ``H_world_prev @ H_prev_cur``.
-            sigma_scale: multiplies the odometry sigma of this factor (> 0).
+            information: ``(dim, dim)`` of the measurement; ``None``: isotropic ``config.sigma``.
         """
-        submap_id = self._check_id(submap_id)
-        if submap_id in self._known:
-            raise ValueError(f"submap {submap_id} was already added")
-        key = self.key(submap_id)
+        submap_id = self._check_new(submap_id)
         if not self._order:
             if H_prev_cur is not None:
                 raise ValueError("the first submap anchors the world frame: pass H_prev_cur=None")
-            guess = np.eye(4)
-            self._pending_factors.push_back(self._prior_factor(key, self._to_gtsam(guess), self._prior_noise))
-        else:
-            if H_prev_cur is None:
-                raise ValueError(f"submap {submap_id} needs H_prev_cur (only the first submap takes None)")
-            H_prev_cur = self._check("H_prev_cur", H_prev_cur)
-            guess = self._check("initial guess", self._last_estimate @ H_prev_cur)
-            if not sigma_scale > 0:
-                raise ValueError(f"sigma_scale must be positive, got {sigma_scale}")
-            noise = self._odometry_noise if sigma_scale == 1.0 else gtsam.noiseModel.Isotropic.Sigma(
-                self.dim, self.config.sigma * sigma_scale)
-            self._pending_factors.push_back(self.relative_factor(self._order[-1], submap_id, H_prev_cur, noise))
-        self._pending_values.insert(key, self._to_gtsam(guess))
-        self._order.append(submap_id)
-        self._known.add(submap_id)
-        self._last_estimate = guess
+            self._segments.append(submap_id)
+            self._insert(submap_id, np.eye(4), self._prior_factor(self.key(submap_id), self._to_gtsam(np.eye(4)),
+                                                                  self._prior_noise))
+            return
+        if H_prev_cur is None:
+            raise ValueError(f"submap {submap_id} needs H_prev_cur (only the first submap takes None)")
+        H_prev_cur = self._check("H_prev_cur", H_prev_cur)
+        guess = self._check("initial guess", self._last_estimate @ H_prev_cur)
+        factor = self.relative_factor(self._order[-1], submap_id, H_prev_cur, self.noise_model(information))
+        self._insert(submap_id, guess, factor)
 
-    def add_loop(self, i: int, j: int, H_i_j: np.ndarray) -> None:
+    def start_segment(self, submap_id: int, H_world_guess: np.ndarray) -> None:
+        """Add ``submap_id`` with a weak prior (``config.segment_sigma``) at ``H_world_guess``."""
+        submap_id = self._check_new(submap_id)
+        guess = self._check("segment guess", H_world_guess)
+        self._segments.append(submap_id)
+        self._insert(submap_id, guess, self._prior_factor(self.key(submap_id), self._to_gtsam(guess), self._segment_noise))
+
+    def add_loop(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray | None = None) -> None:
         """Add a loop factor ``x_i ~ H_i_j x_j`` between already added submaps ``i != j``.
 
         Uses ``BackendConfig.loop_kernel`` (none / Huber / Cauchy, width in whitened units).
@@ -259,7 +300,7 @@ class FactorGraphBackend(ABC):
         if i == j:
             raise ValueError(f"a loop needs two different submaps, got {i} twice")
         H_i_j = self._check("H_i_j", H_i_j)
-        self._pending_factors.push_back(self.relative_factor(i, j, H_i_j, self._loop_noise))
+        self._pending_factors.push_back(self.relative_factor(i, j, H_i_j, self.noise_model(information, loop=True)))
         self._pending_loops += 1
         self.num_loops += 1
 
@@ -271,38 +312,61 @@ class FactorGraphBackend(ABC):
         only the top of the Bayes tree (constant cost). Loop closures: further iSAM2 steps relinearize
         every variable whose step exceeds ``relinearize_threshold``, while some step exceeds
         ``loop_step_threshold`` (at most ``max_loop_iterations``). ``last_update_seconds`` records
-        the wall time.
+        the wall time. If GTSAM fails (an indeterminate system), the pending nodes and factors are
+        dropped, the graph is rebuilt from what it held before, and :class:`BackendUpdateError` says why.
         """
         start = time.perf_counter()
         iterations = 0
         if self._pending_factors.size() or self._pending_values.size():
-            self._isam.update(self._pending_factors, self._pending_values)
-            iterations = 1
-            had_loops = self._pending_loops > 0
-            self._pending_factors = gtsam.NonlinearFactorGraph()
-            self._pending_values = gtsam.Values()
-            self._pending_loops = 0
-            if had_loops:
-                empty_graph, empty_values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-                update_params = gtsam.ISAM2UpdateParams()
-                update_params.force_relinearize = True
-                while iterations < 1 + self.max_loop_iterations:
-                    step = np.abs(self._isam.getDelta().vector())
-                    if step.size == 0 or step.max() < self.loop_step_threshold:
-                        break
-                    self._isam.update(empty_graph, empty_values, update_params)
-                    iterations += 1
+            factors, values, had_loops = self._pending_factors, self._pending_values, self._pending_loops > 0
+            try:
+                iterations = self._solve(factors, values, had_loops)
+            except RuntimeError as exc:  # GTSAM's IndeterminateSystemException and relatives
+                self._roll_back()
+                raise BackendUpdateError(f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}") from None
+            finally:
+                self._pending_factors = gtsam.NonlinearFactorGraph()
+                self._pending_values = gtsam.Values()
+                self._pending_loops = 0
+            self._committed_factors.push_back(factors)
+            self._committed_values.insert(values)
+            self._pending_ids = []
             if self._order:
-                newest = self._order[-1]
-                self._last_estimate = self._from_gtsam(self._estimate_one(self.key(newest)))
+                self._last_estimate = self._from_gtsam(self._estimate_one(self.key(self._order[-1])))
         self.last_update_iterations = iterations
         self.last_update_seconds = time.perf_counter() - start
         self.total_update_seconds += self.last_update_seconds
         self.num_updates += 1
 
-    @abstractmethod
-    def _estimate_one(self, key: int) -> Any:
-        """iSAM2's current estimate of one variable (no full back-substitution)."""
+    def _solve(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, had_loops: bool) -> int:
+        self._isam.update(factors, values)
+        iterations = 1
+        if had_loops:
+            empty_graph, empty_values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+            update_params = gtsam.ISAM2UpdateParams()
+            update_params.force_relinearize = True
+            while iterations < 1 + self.config.max_loop_iterations:
+                step = np.abs(self._isam.getDelta().vector())
+                if step.size == 0 or step.max() < self.config.loop_step_threshold:
+                    break
+                self._isam.update(empty_graph, empty_values, update_params)
+                iterations += 1
+        return iterations
+
+    def _roll_back(self) -> None:
+        """Forget the pending nodes and rebuild iSAM2 from the committed factors."""
+        for submap_id in self._pending_ids:
+            self._order.remove(submap_id)
+            self._known.discard(submap_id)
+            if submap_id in self._segments:
+                self._segments.remove(submap_id)
+        self._pending_ids = []
+        self.num_loops -= self._pending_loops
+        self._isam = self._new_isam()
+        if self._committed_factors.size():
+            self._isam.update(self._committed_factors, self._committed_values)
+        self._last_estimate = (self._from_gtsam(self._estimate_one(self.key(self._order[-1])))
+                               if self._order else None)
 
     # ------------------------------------------------------------------ results
     def H_world_submap(self, submap_id: int) -> np.ndarray:
@@ -348,7 +412,10 @@ class FactorGraphBackend(ABC):
         for _ in range(int(max_iterations)):
             # One step at a time, kept only while it lowers the error: GTSAM's SL(4) chart is
             # first-order, so plain Gauss-Newton can overshoot at the 1e-7 level once converged.
-            optimizer.iterate()
+            try:
+                optimizer.iterate()
+            except RuntimeError:  # a singular polish step: iSAM2's estimate stands
+                break
             new_error = optimizer.error()
             if not new_error < error:
                 break
@@ -358,8 +425,24 @@ class FactorGraphBackend(ABC):
                 break
         return {submap_id: self._from_gtsam(self._at(values, self.key(submap_id))) for submap_id in self._order}
 
+    def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray) -> float:
+        """See :meth:`Backend.loop_chi2`. Costs one batch marginalization of the graph (about 10 ms
+        for 300 SL(4) nodes), so call it for loop candidates only."""
+        H_i_j = self._check("H_i_j", H_i_j)
+        keys = [self.key(j), self.key(i)]
+        values = self._isam.calculateBestEstimate()
+        factor = self.relative_factor(i, j, H_i_j, gtsam.noiseModel.Unit.Create(self.dim))
+        A, _ = factor.linearize(values).jacobian()
+        order = list(factor.keys())
+        if order != keys:  # jacobian blocks follow the factor's key order
+            A = np.concatenate([A[:, order.index(k) * self.dim:(order.index(k) + 1) * self.dim] for k in keys], axis=1)
+        joint = gtsam.Marginals(self.factor_graph(), values).jointMarginalCovariance(keys).fullMatrix()
+        covariance = A @ joint @ A.T + np.linalg.inv(information)
+        error = np.asarray(factor.unwhitenedError(values), dtype=np.float64)
+        return float(error @ np.linalg.solve(covariance, error))
+
     def factor_graph(self) -> gtsam.NonlinearFactorGraph:
-        """The factors optimized so far (prior, odometry, loops), e.g. for a batch comparison."""
+        """The factors optimized so far (priors, odometry, loops), e.g. for a batch comparison."""
         return gtsam.NonlinearFactorGraph(self._isam.getFactorsUnsafe())
 
     def gtsam_values(self) -> gtsam.Values:
@@ -373,3 +456,9 @@ class FactorGraphBackend(ABC):
     @property
     def submap_ids(self) -> list[int]:
         return list(self._order)
+
+    @property
+    def segments(self) -> list[int]:
+        """First submap of every map segment (the first is submap 0's)."""
+        return list(self._segments)
+

@@ -70,6 +70,9 @@ class Sim3Backend(FactorGraphBackend):
     def _at(self, values: gtsam.Values, key: int) -> gtsam.Similarity3:
         return values.atSimilarity3(key)
 
+    def _hat(self, xi: np.ndarray) -> np.ndarray:
+        return np.asarray(gtsam.Similarity3.Hat(np.asarray(xi, dtype=np.float64)), dtype=np.float64)
+
     def _estimate_one(self, key: int) -> gtsam.Similarity3:
         return self._isam.calculateEstimateSimilarity3(key)
 

@@ -41,6 +41,9 @@ class SL4Backend(FactorGraphBackend):
     def _at(self, values: gtsam.Values, key: int) -> gtsam.SL4:
         return values.atSL4(key)
 
+    def _hat(self, xi: np.ndarray) -> np.ndarray:
+        return np.asarray(gtsam.SL4.Hat(np.asarray(xi, dtype=np.float64)), dtype=np.float64)
+
     def _estimate_one(self, key: int) -> gtsam.SL4:
         return self._isam.calculateEstimateSL4(key)
 

@@ -35,4 +35,11 @@ def make_frontend(config: SLAMConfig, replay_dir: str | None = None, cache_dir: 
     return frontend
 
 
-__all__ = ["make_frontend", "CachingFrontend", "ReplayFrontend"]
+def frontend_requires_ground_truth(config: SLAMConfig, replay_dir: str | None = None) -> bool:
+    """Whether the frontend a run would use reads depth and poses from the frames (without building it)."""
+    if replay_dir is not None:
+        return ReplayFrontend(replay_dir).requires_ground_truth
+    return config.frontend == "simulated"
+
+
+__all__ = ["make_frontend", "frontend_requires_ground_truth", "CachingFrontend", "ReplayFrontend"]

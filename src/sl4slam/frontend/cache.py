@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import UserError
 from ..types import Frame, Frontend, SubmapPrediction
 
-_FIELDS = ("depth", "confidence", "T_cam_submap", "K", "colors", "points", "points_confidence")
+_FIELDS = ("depth", "confidence", "T_cam_submap", "K", "colors", "points", "points_confidence", "principal_point")
 
 
 def _path(directory: Path, submap_id: int) -> Path:
@@ -30,14 +30,22 @@ class CachingFrontend:
     def __init__(self, inner: Frontend, directory: str | os.PathLike) -> None:
         self.inner = inner
         self.name = inner.name
+        self.requires_ground_truth = inner.requires_ground_truth
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
+
+    def prepare(self) -> None:
+        self.inner.prepare()
+
+    def grid_colors(self, frame: Frame) -> np.ndarray:
+        return self.inner.grid_colors(frame)
 
     def reconstruct(self, frames: Sequence[Frame], submap_id: int) -> SubmapPrediction:
         prediction = self.inner.reconstruct(frames, submap_id)
         arrays = {k: getattr(prediction, k) for k in _FIELDS if getattr(prediction, k) is not None}
         arrays["frame_indices"] = np.array([f.index for f in frames], dtype=np.int64)
         arrays["frontend"] = np.array(self.inner.name)
+        arrays["requires_ground_truth"] = np.array(self.requires_ground_truth)
         target = _path(self.directory, submap_id)
         tmp = target.with_suffix(".tmp.npz")
         np.savez_compressed(tmp, **arrays)
@@ -56,8 +64,27 @@ class ReplayFrontend:
             raise UserError(f"no recorded frontend outputs in {self.directory}; record them first with --cache-frontend")
         with np.load(sorted(self.directory.glob("submap_*.npz"))[0]) as first:
             recorded_by = str(first["frontend"]) if "frontend" in first.files else ""
-        # Replaying the simulator must skip the same frames (those without ground truth) as recording did.
-        self.requires_ground_truth = recorded_by == "simulated"
+            recorded = bool(first["requires_ground_truth"]) if "requires_ground_truth" in first.files else None
+        # Replaying must skip the same frames (e.g. those without ground truth) as recording did.
+        self.requires_ground_truth = recorded if recorded is not None else recorded_by == "simulated"
+        self._color_slots: dict[int, tuple[Path, int]] | None = None
+
+    def prepare(self) -> None:
+        """Nothing to load: the recordings were checked when the cache was opened."""
+
+    def grid_colors(self, frame: Frame) -> np.ndarray:
+        """The recorded colours of ``frame`` (from the first submap that holds it)."""
+        if self._color_slots is None:
+            self._color_slots = {}
+            for path in sorted(self.directory.glob("submap_*.npz")):
+                with np.load(path) as data:
+                    for slot, index in enumerate(data["frame_indices"].tolist()):
+                        self._color_slots.setdefault(int(index), (path, slot))
+        if frame.index not in self._color_slots:
+            raise UserError(f"frame {frame.index} is not in the frontend cache {self.directory}")
+        path, slot = self._color_slots[frame.index]
+        with np.load(path) as data:
+            return data["colors"][slot]
 
     def reconstruct(self, frames: Sequence[Frame], submap_id: int) -> SubmapPrediction:
         path = _path(self.directory, submap_id)

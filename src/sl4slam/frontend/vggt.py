@@ -64,6 +64,7 @@ class VGGTFrontend:
     """
 
     name = "vggt"
+    requires_ground_truth = False
 
     def __init__(self, config: VGGTConfig, model: VGGT | None = None, with_points: bool = False) -> None:
         if config.preprocess_mode not in ("crop", "pad"):
@@ -81,6 +82,10 @@ class VGGTFrontend:
             # Half-precision aggregator weights halve its memory; the heads stay float32.
             model.aggregator.to(self.compute_dtype)
         return model
+
+    def prepare(self) -> None:
+        """Load the weights now (before any frame is read), so a missing file fails fast."""
+        _ = self.model
 
     @property
     def model(self) -> VGGT:
@@ -100,6 +105,11 @@ class VGGTFrontend:
         use_autocast = self.compute_dtype != torch.float32
         with torch.autocast(device_type=self.device.type, dtype=self.compute_dtype, enabled=use_autocast):
             return model(images, heads=heads)
+
+    def grid_colors(self, frame: Frame) -> np.ndarray:
+        """``(H, W, 3)`` uint8 colours of ``frame`` on the model's grid (the preprocessing, without the model)."""
+        images, _ = preprocess_images([frame.rgb], mode=self.config.preprocess_mode)
+        return to_uint8_rgb(images)[0]
 
     def reconstruct(self, frames: Sequence[Frame], submap_id: int) -> SubmapPrediction:
         """Reconstruct ``frames`` into one submap (the first frame's camera is the submap frame).
@@ -121,6 +131,7 @@ class VGGTFrontend:
             T_cam_submap=extrinsics.numpy().astype(np.float64),
             K=intrinsics.numpy().astype(np.float64),
             colors=to_uint8_rgb(images),
+            principal_point=np.tile([width / 2.0, height / 2.0], (len(frames), 1)),
         )
         if self.with_points:
             prediction.points = outputs["world_points"][0].float().cpu().numpy()

@@ -36,13 +36,43 @@ def natural_key(path: Path) -> tuple:
     return (0, float(numbers[-1]), path.name)
 
 
+def is_truncated(data: bytes) -> bool:
+    """Whether an encoded JPEG or PNG stops before its end marker (a partial copy or download).
+
+    OpenCV decodes a truncated JPEG into a half-grey image without an error, and prints library
+    messages for a truncated PNG: both are caught here first. Other formats fail to decode.
+    """
+    if data[:2] == b"\xff\xd8":  # JPEG: must end with the EOI marker (trailing padding allowed)
+        return not data.rstrip(b"\x00").endswith(b"\xff\xd9")
+    if data[:8] == b"\x89PNG\r\n\x1a\n":  # PNG: the last chunk is IEND (length, type, CRC)
+        return data[-8:-4] != b"IEND"
+    return False
+
+
+def decode_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray | None:
+    """The decoded image, or ``None`` for a missing, empty, truncated or undecodable file."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError:
+        return None
+    if not data or is_truncated(data):
+        return None
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # the caller reports failures once
+    try:
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+    return image if image is not None and image.size else None
+
+
 def read_rgb(path: Path) -> np.ndarray | None:
-    """Decode an image as ``(H, W, 3)`` uint8 RGB; ``None`` when it cannot be decoded.
+    """Decode an image as ``(H, W, 3)`` uint8 RGB; ``None`` when it cannot be decoded or is truncated.
 
     Grey images are replicated to 3 channels, alpha is dropped, 16-bit colour is scaled to 8 bits.
     """
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None or image.size == 0:
+    image = decode_image(path)
+    if image is None:
         return None
     if image.dtype == np.uint16:
         image = (image >> 8).astype(np.uint8)
@@ -65,7 +95,7 @@ def read_depth(path: Path, metres_per_unit: float, invalid_value: int | None = N
         metres_per_unit: e.g. 1/5000 for TUM, 1/1000 for 7-Scenes.
         invalid_value: raw value meaning "no measurement" besides 0 (7-Scenes uses 65535).
     """
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    raw = decode_image(path)
     if raw is None or raw.ndim != 2 or raw.dtype not in (np.uint16, np.uint8):
         return None
     depth = raw.astype(np.float32) * np.float32(metres_per_unit)

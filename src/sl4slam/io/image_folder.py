@@ -37,6 +37,7 @@ class ImageFolderSource(IndexedSource):
         self.name = folder.name or str(folder)
         self.folder = folder
         self.skipped: list[str] = []
+        self.has_ground_truth = False
         self.K = None if K is None else np.asarray(K, np.float64).reshape(3, 3)
         candidates = sorted(
             (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS), key=natural_key

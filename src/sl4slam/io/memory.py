@@ -4,8 +4,17 @@ from __future__ import annotations
 
 from typing import Iterator, Sequence
 
+import numpy as np
+
 from sl4slam.errors import UserError
 from sl4slam.types import Frame
+
+
+def frames_from_images(indices: Sequence[int], images: Sequence[np.ndarray]) -> list[Frame]:
+    """Plain :class:`Frame` records (timestamp = index) for ``(H, W, 3)`` uint8 images."""
+    if len(indices) != len(images):
+        raise UserError(f"got {len(indices)} frame indices but {len(images)} images; pass one image per index")
+    return [Frame(index=int(i), timestamp=float(i), rgb=np.asarray(image)) for i, image in zip(indices, images)]
 
 
 class ListSource:
@@ -18,6 +27,8 @@ class ListSource:
         self._frames = list(frames)
         self.name = name
         self.skipped: list[str] = []
+        self.has_ground_truth = bool(self._frames) and all(
+            f.depth is not None and f.T_world_cam is not None and f.K is not None for f in self._frames)
         self._by_index = {int(frame.index): frame for frame in self._frames}
         if len(self._by_index) != len(self._frames):
             raise UserError(f"frame source {name!r}: Frame.index values must be unique")

@@ -90,6 +90,7 @@ class SevenScenesSource(IndexedSource):
         self.folder = folder
         self.name = folder.resolve().name
         self.skipped: list[str] = []
+        self.has_ground_truth = True  # every frame has depth and a pose file (unreadable ones are dropped)
         self.K = None if K is None else np.asarray(K, np.float64).reshape(3, 3)
         self._items = select(sorted(frames.items()), stride, max_frames)
 

@@ -319,6 +319,8 @@ class TumSource(IndexedSource):
         self.K = tum_intrinsics(folder) if K is None else np.asarray(K, np.float64).reshape(3, 3)
         items = list(zip(rgb_stamps.tolist(), rgb_paths, depth_paths, poses))
         self._items = select(items, stride, max_frames)
+        self.has_ground_truth = self.K is not None and any(
+            depth is not None and pose is not None for _, _, depth, pose in self._items)
 
     def _describe(self, position: int) -> str:
         return str(self._items[position][1].relative_to(self.folder))

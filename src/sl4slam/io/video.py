@@ -42,6 +42,7 @@ class VideoSource:
         self.name = path.stem
         self.stride = int(stride)
         self.skipped: list[str] = []
+        self.has_ground_truth = False
         self.K = None if K is None else np.asarray(K, np.float64).reshape(3, 3)
         capture = self._open()
         try:

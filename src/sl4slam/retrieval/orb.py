@@ -46,7 +46,7 @@ import scipy.sparse
 
 from ..config import RetrievalConfig
 from ..errors import UserError
-from ..types import LoopCandidate
+from ..types import Frame, LoopCandidate
 
 WORD_BITS = 16
 """Descriptor bits per binary word (2**16 words per table). Fewer bits make words so common
@@ -123,47 +123,21 @@ class OrbRetrieval:
     Deterministic: the vocabulary and the RANSAC sampling depend only on ``seed``.
 
     Args:
-        config: ``RetrievalConfig``; uses ``tau_interval``, ``orb_features``, ``orb_candidates``,
-            ``orb_min_inliers``.
+        config: ``RetrievalConfig``; uses ``tau_interval`` and the ``orb_*`` settings (features,
+            candidates, minimum inliers, ratio test, Hamming bound, epipolar threshold, image size).
         seed: seed of the word tables and of the RANSAC sampler.
-        max_image_side: images whose longer side exceeds this (px) are downscaled to it before
-            feature extraction, so cost and the epipolar threshold do not depend on input size.
-        ratio: Lowe's ratio test threshold.
-        max_hamming: largest Hamming distance (of 256 bits) of a tentative match.
-        epipolar_threshold_px: RANSAC inlier distance to the epipolar line, px at the working
-            resolution.
     """
 
     name = "orb"
 
-    def __init__(
-        self,
-        config: RetrievalConfig | None = None,
-        seed: int = 0,
-        *,
-        max_image_side: int = 640,
-        ratio: float = 0.8,
-        max_hamming: float = 64.0,
-        epipolar_threshold_px: float = 1.5,
-    ) -> None:
+    def __init__(self, config: RetrievalConfig | None = None, seed: int = 0) -> None:
         self.config = config if config is not None else RetrievalConfig()
-        if self.config.orb_features < MIN_FUNDAMENTAL_MATCHES:
-            raise UserError(
-                f"retrieval.orb_features must be at least {MIN_FUNDAMENTAL_MATCHES}, got {self.config.orb_features}"
-            )
-        if self.config.orb_candidates < 1:
-            raise UserError(f"retrieval.orb_candidates must be at least 1, got {self.config.orb_candidates}")
-        if self.config.orb_min_inliers < 1:
-            raise UserError(f"retrieval.orb_min_inliers must be at least 1, got {self.config.orb_min_inliers}")
-        if self.config.tau_interval < 0:
-            raise UserError(f"retrieval.tau_interval must be >= 0, got {self.config.tau_interval}")
-        if max_image_side < 64:
-            raise UserError(f"max_image_side must be at least 64 px, got {max_image_side}")
+        self.config.validate()
         self.seed = int(seed)
-        self.max_image_side = int(max_image_side)
-        self.ratio = float(ratio)
-        self.max_hamming = float(max_hamming)
-        self.epipolar_threshold_px = float(epipolar_threshold_px)
+        self.max_image_side = int(self.config.orb_max_image_side)
+        self.ratio = float(self.config.orb_ratio)
+        self.max_hamming = float(self.config.orb_max_hamming)
+        self.epipolar_threshold_px = float(self.config.orb_epipolar_threshold_px)
         self.vocabulary_size = WORD_TABLES << WORD_BITS
 
         rng = np.random.default_rng(self.seed)
@@ -248,9 +222,9 @@ class OrbRetrieval:
 
     # ----------------------------------------------------------------------------------- database
 
-    def add(self, frame_indices: Sequence[int], images: Sequence[np.ndarray], submap_id: int) -> None:
-        """Store keyframes ``frame_indices`` (images ``(H, W, 3)`` uint8 RGB) of submap ``submap_id``."""
-        _check_lengths(frame_indices, images)
+    def add(self, frames: Sequence[Frame], submap_id: int) -> None:
+        """Store the keyframes ``frames`` (their ``(H, W, 3)`` uint8 RGB images) of submap ``submap_id``."""
+        frame_indices, images = [f.index for f in frames], [f.rgb for f in frames]
         batch = [self._features(index, image) for index, image in zip(frame_indices, images)]
         self._pending.clear()
         for index, features in zip(frame_indices, batch):
@@ -441,10 +415,8 @@ class OrbRetrieval:
             return 0
         return int(np.count_nonzero(mask))
 
-    def query(
-        self, frame_indices: Sequence[int], images: Sequence[np.ndarray], submap_id: int, max_results: int
-    ) -> list[LoopCandidate]:
-        """Loop candidates for the new keyframes ``frame_indices`` of submap ``submap_id``, best first.
+    def query(self, frames: Sequence[Frame], submap_id: int, max_results: int) -> list[LoopCandidate]:
+        """Loop candidates for the new keyframes ``frames`` of submap ``submap_id``, best first.
 
         Only stored keyframes of submaps with id ``<= submap_id - 1 - tau_interval`` are
         considered. The ``orb_candidates`` most similar (query, stored) pairs of the whole batch
@@ -456,7 +428,7 @@ class OrbRetrieval:
         a revisit costs one verification instead of five). The kept candidates are sorted by
         distance (ties: query frame, then match frame) and the first ``max_results`` returned.
         """
-        _check_lengths(frame_indices, images)
+        frame_indices, images = [f.index for f in frames], [f.rgb for f in frames]
         batch = [self._features(index, image) for index, image in zip(frame_indices, images)]
         # Keep only this batch for the add() that follows, so repeated queries do not accumulate.
         self._pending = {int(index): self._pending[int(index)] for index in frame_indices}
@@ -504,13 +476,6 @@ def _same_image(kept: np.ndarray, image: np.ndarray) -> bool:
     """Whether ``image`` equals the copy ``kept`` (same shape, dtype and pixels)."""
     image = np.asarray(image)
     return kept.shape == image.shape and kept.dtype == image.dtype and np.array_equal(kept, image)
-
-
-def _check_lengths(frame_indices: Sequence[int], images: Sequence[np.ndarray]) -> None:
-    if len(frame_indices) != len(images):
-        raise UserError(
-            f"retrieval got {len(frame_indices)} frame indices but {len(images)} images; pass one image per index"
-        )
 
 
 def _global_vector(features: OrbFeatures) -> np.ndarray:

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from ..config import RetrievalConfig
-from ..types import LoopCandidate
+from ..types import Frame, LoopCandidate
 
 
 @dataclass
@@ -224,10 +224,9 @@ class SaladRetrieval:
         self.describe_seconds += time.perf_counter() - start
         return descriptors
 
-    def add(self, frame_indices: Sequence[int], images: Sequence[np.ndarray], submap_id: int) -> None:
-        """Store the descriptors of ``images`` (frames ``frame_indices``) under ``submap_id``."""
-        if len(frame_indices) != len(images):
-            raise ValueError(f"{len(frame_indices)} frame indices but {len(images)} images")
+    def add(self, frames: Sequence[Frame], submap_id: int) -> None:
+        """Store the descriptors of the keyframes ``frames`` under ``submap_id``."""
+        frame_indices, images = [f.index for f in frames], [f.rgb for f in frames]
         cached = [self._last_query.get(int(i)) for i in frame_indices]
         if all(c is not None for c in cached) and cached:
             descriptors = np.stack(cached)
@@ -236,12 +235,9 @@ class SaladRetrieval:
         self._last_query = {}
         self.index.add(descriptors, frame_indices, submap_id)
 
-    def query(
-        self, frame_indices: Sequence[int], images: Sequence[np.ndarray], submap_id: int, max_results: int
-    ) -> list[LoopCandidate]:
-        """Loop candidates for the new keyframes of submap ``submap_id``, best (smallest distance) first."""
-        if len(frame_indices) != len(images):
-            raise ValueError(f"{len(frame_indices)} frame indices but {len(images)} images")
+    def query(self, frames: Sequence[Frame], submap_id: int, max_results: int) -> list[LoopCandidate]:
+        """Loop candidates for the new keyframes ``frames`` of submap ``submap_id``, best (smallest distance) first."""
+        frame_indices, images = [f.index for f in frames], [f.rgb for f in frames]
         descriptors = self.describe(images)
         self._last_query = {int(i): d for i, d in zip(frame_indices, descriptors)}
         max_submap = submap_id - 1 - self.config.tau_interval

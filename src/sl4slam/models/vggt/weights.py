@@ -25,62 +25,14 @@ from pathlib import Path
 import torch
 
 from ...errors import MissingWeightsError, UserError
+from ..hub import DEFAULT_HUB_FILENAME, DEFAULT_HUB_ID, resolve_weights
 from .model import SKIPPED_PREFIXES, VGGT, VGGTModelConfig
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_HUB_ID = "facebook/VGGT-1B"
-DEFAULT_HUB_FILENAME = "model.pt"
 CONFIG_METADATA_KEY = "vggt_config"
-_LOCAL_SUFFIXES = (".pt", ".pth", ".bin", ".safetensors")
 _DTYPES = {"fp32": torch.float32, "float32": torch.float32, "bf16": torch.bfloat16, "bfloat16": torch.bfloat16,
            "fp16": torch.float16, "float16": torch.float16}
-
-
-def _download_hint(repo_id: str, filename: str) -> str:
-    return (
-        f"download https://huggingface.co/{repo_id}/resolve/main/{filename} on a machine with internet access "
-        f"(or run `huggingface-cli download {repo_id} {filename}` there) and pass the file with --weights PATH"
-    )
-
-
-def _looks_like_path(weights: str) -> bool:
-    return weights.lower().endswith(_LOCAL_SUFFIXES) or weights.startswith((".", "/", "~")) or "\\" in weights
-
-
-def resolve_weights(weights: str, cache_dir: str | Path | None = None, local_files_only: bool | None = None) -> Path:
-    """Local path of ``weights`` (a file, or a hub id fetched into / found in the hub cache).
-
-    Raises:
-        MissingWeightsError: the file does not exist, or the hub file is neither cached nor
-            downloadable (offline); the message says how to obtain it.
-    """
-    path = Path(weights).expanduser()
-    if path.is_file():
-        return path
-    if path.is_dir():
-        for name in ("model.safetensors", DEFAULT_HUB_FILENAME):
-            if (path / name).is_file():
-                return path / name
-        raise MissingWeightsError(f"no model.safetensors or model.pt in folder {path}; {_download_hint(DEFAULT_HUB_ID, DEFAULT_HUB_FILENAME)}")
-    if _looks_like_path(weights) or not re.fullmatch(r"[\w.-]+/[\w.-]+(:[\w./-]+)?", weights):
-        raise MissingWeightsError(
-            f"VGGT weights file not found: {weights}; {_download_hint(DEFAULT_HUB_ID, DEFAULT_HUB_FILENAME)}"
-        )
-    repo_id, _, filename = weights.partition(":")
-    filename = filename or DEFAULT_HUB_FILENAME
-    try:
-        from huggingface_hub import hf_hub_download
-
-        kwargs = {"cache_dir": str(cache_dir) if cache_dir is not None else None}
-        if local_files_only is not None:
-            kwargs["local_files_only"] = local_files_only
-        return Path(hf_hub_download(repo_id, filename, **kwargs))
-    except Exception as exc:  # offline, unknown repo, HTTP errors: all mean "not available here"
-        raise MissingWeightsError(
-            f"VGGT weights {repo_id}/{filename} are not in the Hugging Face cache and could not be downloaded "
-            f"({type(exc).__name__}); {_download_hint(repo_id, filename)}"
-        ) from None
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict | None]:

@@ -1,0 +1,86 @@
+"""Pieces every alignment model shares: checking point pairs, and summarising residuals.
+
+Every estimator (RANSAC in SL(4) or Sim(3), the camera-constrained fit, the shared-frame Sim(3))
+validates its input with :func:`clean_correspondences` and reports with :func:`make_alignment`, so
+inlier masks always cover every input row and ratios and RMS mean the same thing everywhere.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..types import Alignment
+
+SUPPORT_POINTS = 2000
+"""Inlier pairs an ``Alignment`` keeps (an evenly strided subset) for weighting its edge by its
+evidence (``sl4slam.backend.evidence``); enough for a 15x15 information matrix, cheap to keep."""
+
+
+def clean_correspondences(X_a: np.ndarray, X_b: np.ndarray, minimum: int, model: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Drop rows with NaN/Inf in either set.
+
+    Args:
+        X_a, X_b: ``(N, 3)`` corresponding points.
+        minimum: fewest finite correspondences the model can use.
+        model: model name for the error message.
+
+    Returns:
+        ``(X_a, X_b)`` finite rows as float64 and the ``(N,)`` bool mask of kept rows.
+
+    Raises:
+        ValueError: shapes disagree, or fewer than ``minimum`` finite rows remain.
+    """
+    X_a = np.asarray(X_a, dtype=np.float64)
+    X_b = np.asarray(X_b, dtype=np.float64)
+    if X_a.shape != X_b.shape or X_a.ndim != 2 or X_a.shape[1] != 3:
+        raise ValueError(f"{model} alignment needs two (N, 3) point arrays of equal shape, got {X_a.shape} and {X_b.shape}")
+    finite = np.isfinite(X_a).all(axis=1) & np.isfinite(X_b).all(axis=1)
+    count = int(finite.sum())
+    if count < minimum:
+        raise ValueError(
+            f"{model} alignment needs at least {minimum} finite correspondences, got {count} of {len(X_a)}; "
+            "the shared frame has too few confident points"
+        )
+    return X_a[finite], X_b[finite], finite
+
+
+def inlier_rms(r2: np.ndarray, inliers: np.ndarray) -> float:
+    """RMS of the inliers' errors (``r2`` squared distances); of all errors when there is no inlier."""
+    values = r2[inliers] if inliers.any() else r2
+    return float(np.sqrt(values.mean())) if len(values) else 0.0
+
+
+def make_alignment(
+    H: np.ndarray,
+    X_a: np.ndarray,
+    X_b: np.ndarray,
+    finite: np.ndarray,
+    inliers: np.ndarray,
+    r2: np.ndarray,
+    model: str,
+    fallback: str | None = None,
+    extras: dict | None = None,
+) -> Alignment:
+    """An :class:`Alignment` over every input row.
+
+    Args:
+        H: ``(4, 4)`` the estimate, ``X_a ~ H X_b``.
+        X_a, X_b: ``(n, 3)`` the finite correspondences the estimate was scored on.
+        finite: ``(N,)`` bool, which input rows those are (``n = finite.sum()``).
+        inliers, r2: ``(n,)`` inlier mask and squared transfer errors on those rows.
+    """
+    full = np.zeros(len(finite), dtype=bool)
+    full[np.flatnonzero(finite)] = inliers
+    chosen = np.flatnonzero(inliers)
+    if len(chosen) > SUPPORT_POINTS:
+        chosen = chosen[:: -(-len(chosen) // SUPPORT_POINTS)]
+    return Alignment(
+        H=H,
+        inliers=full,
+        inlier_ratio=float(inliers.sum() / len(finite)) if len(finite) else 0.0,
+        rms=inlier_rms(r2, inliers),
+        model=model,
+        fallback=fallback,
+        extras=dict(extras or {}),
+        support=(X_a[chosen].copy(), X_b[chosen].copy()),
+    )

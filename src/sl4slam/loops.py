@@ -1,0 +1,227 @@
+"""Loop-closure verification: which retrieved loops may reach the graph.
+
+A retrieved loop frame is re-reconstructed inside the new submap next to the query keyframe that
+retrieval matched it with; its points there and its stored points in its old submap give the loop
+measurement ``H_old_new``. That alignment alone cannot tell a wrong place: it compares two
+reconstructions of the *same image*, which agree (inlier ratios near 1) whatever the model made of
+the place. Three independent checks therefore stand between a candidate and the graph, each with a
+reason the run summary lists:
+
+1. **Alignment.** The loop frame's two reconstructions must align with the model the graph uses,
+   without a fallback, keeping ``LoopConfig.min_inlier_ratio`` of the points (or half the
+   odometry's median, when the model fits consecutive submaps worse than that), and pass the same
+   edge checks as odometry (finite, orientation-preserving, conditioned).
+2. **Views** (:func:`view_agreement`). Inside the new submap, the loop frame's confident points are
+   projected into the query keyframe: enough of them must land in its image in front of the camera
+   (overlap), agree with its own depth (consistency), and the two images must look alike there
+   (normalized cross-correlation of slightly blurred grey values, which ignores exposure). A model
+   given two images of different places still places both cameras somewhere; what it cannot do is
+   make one image's surfaces reproject onto the other's with matching depth and appearance.
+3. **Graph** (``Backend.loop_chi2``). The loop measurement is compared with the current map: the
+   squared Mahalanobis distance of its factor's error under the joint covariance of its two nodes
+   plus its own noise must stay below the chi-square quantile ``LoopConfig.consistency_quantile``.
+   A true revisit disagrees with the map by its drift, which the odometry's covariance accounts for;
+   a wrong place disagrees by the distance between the places.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import cv2
+import numpy as np
+
+from .backend import Backend
+from .config import AlignmentConfig, LoopConfig
+from .edges import edge_problem
+from .types import Aligner, Alignment, FrameView
+
+BLUR_FRACTION = 0.01
+"""Gaussian blur sigma of the view check's grey images, as a fraction of the image width: the
+projected points land a few pixels off under realistic pose errors, and fine texture would then
+decorrelate even on a true revisit."""
+MIN_CORRELATION_POINTS = 30
+"""Fewest depth-consistent points on which the correlation is computed (fewer: no agreement)."""
+
+
+@dataclass
+class LoopDecision:
+    """Verdict on one loop candidate.
+
+    Attributes:
+        accepted: whether it reaches the graph.
+        reason: why it was rejected (``None`` when accepted).
+        alignment: the loop frame's alignment (``None`` if it failed).
+        information: ``(dim, dim)`` of the edge, when it got that far.
+        checks: the figures behind the verdict (inlier ratio, overlap, consistency, correlation, chi2).
+    """
+
+    accepted: bool
+    reason: str | None = None
+    alignment: Alignment | None = None
+    information: np.ndarray | None = None
+    checks: dict = field(default_factory=dict)
+
+
+def grey_for_check(colors: np.ndarray) -> np.ndarray:
+    """``(H, W)`` float32 grey image, blurred by ``BLUR_FRACTION`` of its width, from ``(H, W, 3)`` uint8."""
+    grey = cv2.cvtColor(np.ascontiguousarray(colors, dtype=np.uint8), cv2.COLOR_RGB2GRAY).astype(np.float32)
+    sigma = max(1.0, BLUR_FRACTION * grey.shape[1])
+    return cv2.GaussianBlur(grey, (0, 0), sigma)
+
+
+def view_agreement(
+    X: np.ndarray,
+    grey_X: np.ndarray,
+    depth: np.ndarray,
+    mask: np.ndarray,
+    grey: np.ndarray,
+    K: np.ndarray,
+    T_cam_submap: np.ndarray,
+    depth_tolerance: float,
+) -> dict:
+    """How well points of one frame reproject into another frame of the same submap.
+
+    Args:
+        X: ``(n, 3)`` points of the first frame, in the submap frame.
+        grey_X: ``(n,)`` their grey values in the first frame's image.
+        depth: ``(H, W)`` the second frame's depth; mask: ``(H, W)`` its confident pixels;
+            grey: ``(H, W)`` its grey image.
+        K, T_cam_submap: the second frame's intrinsics ``(3, 3)`` and extrinsics ``(4, 4)``.
+        depth_tolerance: relative depth difference under which a point agrees.
+
+    Returns:
+        ``{"overlap": fraction of the points in the second image in front of its camera,
+        "consistent": fraction of those that hit a confident pixel of about their own depth,
+        "correlation": normalized cross-correlation of the grey values at the consistent points
+        (0 when fewer than MIN_CORRELATION_POINTS)}``.
+    """
+    height, width = depth.shape
+    X_cam = X @ T_cam_submap[:3, :3].T + T_cam_submap[:3, 3]
+    z = X_cam[:, 2]
+    in_front = z > 1e-9
+    uvw = X_cam @ np.asarray(K, dtype=np.float64).T
+    u = np.where(in_front, uvw[:, 0] / np.where(in_front, uvw[:, 2], 1.0), -1.0)
+    v = np.where(in_front, uvw[:, 1] / np.where(in_front, uvw[:, 2], 1.0), -1.0)
+    column, row = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+    inside = in_front & (column >= 0) & (column < width) & (row >= 0) & (row < height)
+    column, row = column[inside], row[inside]
+    measured = depth[row, column].astype(np.float64)
+    agree = mask[row, column] & (np.abs(z[inside] - measured) <= depth_tolerance * measured)
+    overlap = float(inside.mean()) if len(X) else 0.0
+    consistent = float(agree.mean()) if len(agree) else 0.0
+    correlation = 0.0
+    if agree.sum() >= MIN_CORRELATION_POINTS:
+        a = grey_X[inside][agree].astype(np.float64)
+        b = grey[row[agree], column[agree]].astype(np.float64)
+        a, b = a - a.mean(), b - b.mean()
+        denominator = np.sqrt((a * a).sum() * (b * b).sum())
+        correlation = float((a * b).sum() / denominator) if denominator > 0 else 0.0
+    return {"overlap": overlap, "consistent": consistent, "correlation": correlation}
+
+
+def chi2_threshold(config: LoopConfig, dim: int) -> float:
+    """The graph check's bound on the squared Mahalanobis distance (``dim`` degrees of freedom)."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(config.consistency_quantile, dim))
+
+
+def check_view(config: LoopConfig, agreement: dict) -> str | None:
+    """Reason the view check fails, or ``None``."""
+    if agreement["overlap"] < config.min_overlap:
+        return f"the loop frame does not face the query keyframe (overlap {agreement['overlap']:.2f} < {config.min_overlap})"
+    if agreement["consistent"] < config.min_consistent:
+        return (f"the loop frame's depth disagrees with the query keyframe's "
+                f"(consistent {agreement['consistent']:.2f} < {config.min_consistent})")
+    if agreement["correlation"] < config.min_correlation:
+        return (f"the loop frame does not look like the query keyframe where they overlap "
+                f"(correlation {agreement['correlation']:.2f} < {config.min_correlation})")
+    return None
+
+
+@dataclass
+class LoopEvidence:
+    """What the new submap says about one loop candidate.
+
+    Attributes:
+        old: the loop frame as stored in its old submap.
+        new: the loop frame reconstructed in the new submap.
+        grey_new: ``(H, W)`` its grey image for the view check (:func:`grey_for_check`).
+        query_depth, query_mask, query_grey: ``(H, W)`` the query keyframe in the new submap.
+        query_K, query_T_cam_submap: its camera there.
+    """
+
+    old: FrameView
+    new: FrameView
+    grey_new: np.ndarray
+    query_depth: np.ndarray
+    query_mask: np.ndarray
+    query_grey: np.ndarray
+    query_K: np.ndarray
+    query_T_cam_submap: np.ndarray
+
+
+class LoopVerifier:
+    """Runs the three checks of the module docstring on a candidate.
+
+    Args:
+        config: the ``[loops]`` settings; alignment_config: the edge checks' thresholds.
+        aligner: the alignment stage (its model must match the graph's group).
+        backend: the graph, for the consistency check.
+        information: ``alignment -> (dim, dim)`` information of an edge (``sl4slam.backend.evidence``).
+    """
+
+    def __init__(self, config: LoopConfig, alignment_config: AlignmentConfig, aligner: Aligner, backend: Backend,
+                 information: Callable[[Alignment], np.ndarray]) -> None:
+        self.config = config
+        self.alignment_config = alignment_config
+        self.aligner = aligner
+        self.backend = backend
+        self.information = information
+        self.threshold = chi2_threshold(config, backend.dim)
+
+    def inlier_gate(self, odometry_ratios: Sequence[float]) -> float:
+        """Inlier ratio a loop alignment must reach: ``min_inlier_ratio``, or half the median ratio
+        of the odometry so far when the model fits consecutive submaps worse than that (Sim(3)
+        under a projective distortion): a loop must fit about as well as odometry does."""
+        gate = self.config.min_inlier_ratio
+        return min(gate, 0.5 * float(np.median(odometry_ratios))) if len(odometry_ratios) else gate
+
+    def verify(self, old_submap: int, new_submap: int, evidence: LoopEvidence, odometry_ratios: Sequence[float],
+               seed: int) -> LoopDecision:
+        """The verdict on a loop between ``old_submap`` and ``new_submap`` (whose node is in the graph)."""
+        try:
+            alignment = self.aligner.align(evidence.old, evidence.new, seed=seed)
+        except ValueError as exc:
+            return LoopDecision(False, f"the loop frame's alignment failed: {exc}")
+        checks = {"inlier_ratio": alignment.inlier_ratio}
+        gate = self.inlier_gate(odometry_ratios)
+        problem = edge_problem(alignment, self.alignment_config)
+        if alignment.fallback:
+            problem = f"the loop frame's alignment needed a fallback ({alignment.fallback})"
+        elif problem is None and alignment.inlier_ratio < gate:
+            problem = f"inlier ratio {alignment.inlier_ratio:.2f} < {gate:.2f}"
+        if problem:
+            return LoopDecision(False, problem, alignment, checks=checks)
+        if self.config.verify_view:
+            X = evidence.new.points.reshape(-1, 3)
+            pixels = np.flatnonzero(evidence.new.mask)
+            pixels = pixels[:: max(1, len(pixels) // self.config.check_points)]
+            agreement = view_agreement(
+                X[pixels].astype(np.float64), evidence.grey_new.reshape(-1)[pixels], evidence.query_depth,
+                evidence.query_mask, evidence.query_grey, evidence.query_K, evidence.query_T_cam_submap,
+                self.config.depth_tolerance)
+            checks.update(agreement)
+            problem = check_view(self.config, agreement)
+            if problem:
+                return LoopDecision(False, problem, alignment, checks=checks)
+        information = self.information(alignment)
+        if self.config.verify_graph:
+            distance = self.backend.loop_chi2(old_submap, new_submap, alignment.H, information)
+            checks["chi2"] = distance
+            if not distance <= self.threshold:
+                return LoopDecision(False, f"it disagrees with the map (chi-square {distance:.3g} > {self.threshold:.3g})",
+                                    alignment, information, checks)
+        return LoopDecision(True, None, alignment, information, checks)
