@@ -211,7 +211,8 @@ def frontend_cache_key(config: SLAMConfig, sequence: Sequence) -> dict:
     Which frames a submap holds depends on the frame selection (stride, max_frames), the keyframe
     selector, the submap size and loop slots, and the retrieval (with its seed, for ORB); what
     the frontend returns for them on its own settings (all of ``sim`` including its seed; ``vggt``
-    except the device, so a cache recorded on a GPU replays on a CPU). Backend, alignment,
+    except the device, so a cache recorded on a GPU replays on a CPU). With simulated false loops
+    (``sim.false_loop_rate``) the ``sim`` settings also decide the loop frames. Backend, alignment,
     confidence and output settings are not part of it: changing them reuses the cache.
     """
     retrieval: dict[str, Any] = {"kind": "none"}
@@ -224,6 +225,9 @@ def frontend_cache_key(config: SLAMConfig, sequence: Sequence) -> dict:
     else:
         frontend = {k: v for k, v in dataclasses.asdict(config.vggt).items() if k != "device"}
         frontend["use_point_head"] = config.submap.use_point_head
+    if retrieval["kind"] != "none" and config.sim.false_loop_rate > 0:
+        # injected wrong places change which loop frames are asked for, whatever the frontend
+        retrieval["false_loops"] = dataclasses.asdict(config.sim)
     return {
         "dataset": sequence.dataset,
         "sequence": sequence.name,
@@ -477,18 +481,11 @@ def _needs_gpu(config: SLAMConfig) -> bool:
 
 
 def _check_configs(configs: list[SLAMConfig], needs_model: bool) -> None:
-    from ..pipeline import check_config
-
+    """Every grid point's settings, and the model weights when a run will need them (one line each)."""
     for config in configs:
-        check_config(config)
-        if config.frontend == "simulated":
-            from ..frontend.simulated import SimulatedFrontend
-
-            SimulatedFrontend(config.sim)  # validates the settings
-        elif config.frontend != "vggt":
-            raise UserError(f"unknown frontend '{config.frontend}': use --frontend vggt or --frontend simulated")
+        config.validate()
     if needs_model:
-        from ..models.vggt.weights import resolve_weights
+        from ..models.hub import resolve_weights
 
         for weights in sorted({c.vggt.weights for c in configs if c.frontend == "vggt"}):
             resolve_weights(weights)
