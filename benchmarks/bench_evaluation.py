@@ -15,7 +15,7 @@ with the simulated frontend. Settings of the frontend come after ``--``, so the 
 re-made with another simulator profile::
 
     python benchmarks/bench_evaluation.py                                   # default: --sim-perspective 0.1
-    python benchmarks/bench_evaluation.py -- --sim-profile vggt              # once that profile exists
+    python benchmarks/bench_evaluation.py -- --sim-profile vggt              # the VGGT-calibrated simulator
     python benchmarks/bench_evaluation.py --tum-root datasets/tum --sequences-tum desk
 """
 
