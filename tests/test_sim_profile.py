@@ -17,7 +17,6 @@ from sl4slam.config import (
     SIM_PROFILE_VALUES,
     SIM_PROFILES,
     SimulatorConfig,
-    SLAMConfig,
     apply_sim_profile,
     config_from_dict,
     config_to_dict,

@@ -548,13 +548,32 @@ class SimulatorConfig(Section):
 
     def validate(self) -> None:
         super().validate()
-        for name in ("perspective", "shear", "scale", "depth_noise", "outlier_magnitude", "confidence_jitter"):
-            self._require(name, getattr(self, name) >= 0, ">= 0")
-        self._require("outlier_fraction", 0 <= self.outlier_fraction < 1, "in [0, 1)")
-        self._require("outlier_blob_px", self.outlier_blob_px > 0, "> 0 px")
-        self._require("confidence_scale", self.confidence_scale > 0, "> 0")
-        self._require("outlier_confidence", 0 <= self.outlier_confidence <= 1, "in [0, 1]")
-        self._require("seed", self.seed >= 0, ">= 0")
+        self._require("profile", self.profile in SIM_PROFILES, "one of " + ", ".join(SIM_PROFILES))
+        checks = [
+            ("perspective", self.perspective >= 0, ">= 0"),
+            ("shear", self.shear >= 0, ">= 0"),
+            ("scale", self.scale >= 0, ">= 0"),
+            ("gauge_scale_ratio", 1 <= self.gauge_scale_ratio <= 10, "in [1, 10] (1: no scale gauge)"),
+            ("camera_rotation_deg", 0 <= self.camera_rotation_deg <= 30, "in [0, 30] degrees"),
+            ("camera_translation", 0 <= self.camera_translation <= 1, "in [0, 1] (a fraction of the mean point distance)"),
+            ("focal_error", 0 <= self.focal_error <= 0.5, "in [0, 0.5]"),
+            ("camera_window_frames", self.camera_window_frames >= 1, ">= 1"),
+            ("depth_noise", self.depth_noise >= 0, ">= 0"),
+            ("depth_warp", 0 <= self.depth_warp <= 1, "in [0, 1]"),
+            ("depth_warp_length", self.depth_warp_length > 0, "> 0 (a fraction of the image width)"),
+            ("flying_px", self.flying_px == 0 or 1 <= self.flying_px <= 50, "0 (off) or in [1, 50] px"),
+            ("flying_jump", self.flying_jump > 0, "> 0"),
+            ("frame_consistency", 0 <= self.frame_consistency <= 1, "in [0, 1]"),
+            ("outlier_fraction", 0 <= self.outlier_fraction < 1, "in [0, 1)"),
+            ("outlier_blob_px", self.outlier_blob_px > 0, "> 0"),
+            ("outlier_magnitude", self.outlier_magnitude >= 0, ">= 0"),
+            ("confidence_scale", self.confidence_scale > 0, "> 0"),
+            ("confidence_jitter", self.confidence_jitter >= 0, ">= 0"),
+            ("outlier_confidence", 0 <= self.outlier_confidence <= 1, "in [0, 1]"),
+            ("seed", self.seed >= 0, ">= 0"),
+        ]
+        for name, ok, allowed in checks:
+            self._require(name, bool(ok), allowed)
         self._require("false_loop_rate", 0 <= self.false_loop_rate <= 1, "in [0, 1]")
         self._require("false_loop_min_distance", self.false_loop_min_distance >= 0, ">= 0 m")
         self._require("false_loop_min_angle", 0 <= self.false_loop_min_angle <= 180, "in [0, 180] degrees")

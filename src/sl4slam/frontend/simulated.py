@@ -172,7 +172,7 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 from scipy.special import ndtr
 
-from ..config import SIM_PROFILES, SimulatorConfig
+from ..config import SimulatorConfig
 from ..errors import UserError
 from ..geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse, unproject_depth
 from ..types import Frame, SubmapPrediction
@@ -209,7 +209,7 @@ class SimulatedFrontend:
 
     def __init__(self, config: SimulatorConfig | None = None):
         self.config = config if config is not None else SimulatorConfig()
-        _validate(self.config)
+        self.config.validate()
         self.distortions: dict[int, np.ndarray] = {}
         self.last_distortion: np.ndarray | None = None
 
@@ -539,33 +539,3 @@ def _disk(radius: float) -> np.ndarray:
     r = int(np.floor(radius))
     dy, dx = np.mgrid[-r : r + 1, -r : r + 1]
     return dx**2 + dy**2 <= radius**2
-
-
-def _validate(cfg: SimulatorConfig) -> None:
-    """One-line errors (naming the flag and the config key) for settings outside their meaningful range."""
-    cfg._require("profile", cfg.profile in SIM_PROFILES, "one of " + ", ".join(SIM_PROFILES))
-    checks = [
-        ("perspective", cfg.perspective >= 0, ">= 0"),
-        ("shear", cfg.shear >= 0, ">= 0"),
-        ("scale", cfg.scale >= 0, ">= 0"),
-        ("gauge_scale_ratio", 1 <= cfg.gauge_scale_ratio <= 10, "in [1, 10] (1: no scale gauge)"),
-        ("camera_rotation_deg", 0 <= cfg.camera_rotation_deg <= 30, "in [0, 30] degrees"),
-        ("camera_translation", 0 <= cfg.camera_translation <= 1, "in [0, 1] (a fraction of the mean point distance)"),
-        ("focal_error", 0 <= cfg.focal_error <= 0.5, "in [0, 0.5]"),
-        ("camera_window_frames", cfg.camera_window_frames >= 1, ">= 1"),
-        ("depth_noise", cfg.depth_noise >= 0, ">= 0"),
-        ("depth_warp", 0 <= cfg.depth_warp <= 1, "in [0, 1]"),
-        ("depth_warp_length", cfg.depth_warp_length > 0, "> 0 (a fraction of the image width)"),
-        ("flying_px", cfg.flying_px == 0 or 1 <= cfg.flying_px <= 50, "0 (off) or in [1, 50] px"),
-        ("flying_jump", cfg.flying_jump > 0, "> 0"),
-        ("frame_consistency", 0 <= cfg.frame_consistency <= 1, "in [0, 1]"),
-        ("outlier_fraction", 0 <= cfg.outlier_fraction < 1, "in [0, 1)"),
-        ("outlier_blob_px", cfg.outlier_blob_px > 0, "> 0"),
-        ("outlier_magnitude", cfg.outlier_magnitude >= 0, ">= 0"),
-        ("confidence_scale", cfg.confidence_scale > 0, "> 0"),
-        ("confidence_jitter", cfg.confidence_jitter >= 0, ">= 0"),
-        ("outlier_confidence", 0 <= cfg.outlier_confidence <= 1, "in [0, 1]"),
-        ("seed", cfg.seed >= 0, ">= 0"),
-    ]
-    for name, ok, allowed in checks:
-        cfg._require(name, bool(ok and np.isfinite(getattr(cfg, name))), allowed)
