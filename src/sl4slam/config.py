@@ -134,9 +134,9 @@ class AlignmentConfig(Section):
         "model": "--alignment", "min_points": "--alignment-min-points",
         "min_inlier_ratio": "--alignment-min-inlier-ratio", "max_condition": "--alignment-max-condition"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
-        "model": ("auto", "sl4", "sim3-points", "sim3-cameras"), "planar_model": ("calibration-scale", "camera-constrained")}
+        "model": ("auto", "sl4", "sim3-points", "sim3-cameras"), "planar_model": ("auto", "calibration-scale", "camera-constrained")}
     advanced: ClassVar[frozenset[str]] = frozenset({
-        "max_correspondences", "max_points", "max_refit_points", "planarity_threshold", "min_relief", "planar_model",
+        "max_correspondences", "max_points", "max_refit_points", "planarity_threshold", "min_relief", "planar_model", "planar_support_margin",
         "near_planar_threshold", "refit", "refit_candidates",
         "hypothesis_batch", "early_stop_spread", "preemptive_points", "preemptive_keep",
         "preemptive_min_keep", "refit_rounds", "refit_min_gain", "small_set",
@@ -176,10 +176,17 @@ class AlignmentConfig(Section):
     distance to the camera) below which the 15-DOF fit is degenerate: VGGT's depth errors (AbsRel
     2-4 %, smooth) fake about that much structure on a flat floor, which RANSAC then turns into a
     projective error (benchmarks/bench_robustness.py). Rooms and desks seen from 1-3 m: 0.2-0.3."""
-    planar_model: str = "calibration-scale"
+    planar_model: str = "auto"
     """What measures a degenerate shared frame: "calibration-scale" (its two cameras and depth
-    ratio: VGGT-SLAM 2.0's link, immune to depth warps) or "camera-constrained" (a projective fit
-    whose free part the points choose)."""
+    ratio: VGGT-SLAM 2.0's link, immune to depth warps, blind to a relative projective
+    distortion), "camera-constrained" (a projective fit whose free part the points choose), or
+    "auto": both are measured and the link is kept unless the constrained fit explains
+    ``planar_support_margin`` times as many points (a real distortion the link cannot express)."""
+    planar_support_margin: float = 1.5
+    """"auto": how many times the link's inliers the camera-constrained fit must explain to win (as inlier ratios).
+    On the synthetic world the link explains 23-27 % of a floor frame's points under a 0.2
+    projective distortion (the constrained fit: all), and about as many as the constrained fit
+    under the vggt profile's depth warps (tests/test_edges.py, benchmarks/bench_robustness.py)."""
     near_planar_threshold: float = 0.15
     """Below this planarity (but above ``planarity_threshold``) the shared frame is dominated by a
     plane, where RANSAC may settle on the plane and call the rest outliers (on the synthetic world:
@@ -243,6 +250,7 @@ class AlignmentConfig(Section):
         self._require("min_inliers", self.min_inliers >= 5, "at least 5 (one minimal sample)")
         self._require("planarity_threshold", 0 <= self.planarity_threshold < 1, "in [0, 1)")
         self._require("min_relief", 0 <= self.min_relief < 1, "in [0, 1)")
+        self._require("planar_support_margin", self.planar_support_margin >= 1, ">= 1")
         self._require("near_planar_threshold", self.planarity_threshold <= self.near_planar_threshold <= 1,
                       "between --ransac-planarity-threshold and 1")
         self._require("seed", self.seed >= 0, ">= 0")
