@@ -142,7 +142,8 @@ class SL4Aligner(PointAligner):
         if self.config.planar_model == "auto":
             link = self.camera_edge(view_a, view_b)
             margin = self.config.planar_support_margin
-            if constrained is None or constrained.inlier_ratio < margin * link.inlier_ratio:
+            if (constrained is None or constrained.inlier_ratio < margin * link.inlier_ratio
+                    or constrained.inlier_ratio < self.config.planar_fit_min_inlier_ratio):
                 link.fallback = f"{why}; used the calibration-and-scale link of the frame's cameras"
                 return link
             constrained.fallback = (f"{why}; used the camera-constrained projective fit (it explains "
