@@ -148,7 +148,7 @@ def main() -> None:
         at3 = table.get(("synthetic", profile, "sl4", "loops on, false rate 0.3"), {})
         targets.append(
             f"| {profile} | {ratio(sl4_on, sim3_on)} | "
-            f"{100 * (1 - table[sl4_on]['median'] / table[sl4_off]['median']):+.0f} % | "
+            f"{100 * (1 - table[sl4_on]['median'] / table[sl4_off]['median']):.0f} % | "
             f"{at3.get('false_rejected', 0)}/{at3.get('false', 0)} | {at3.get('true_accepted', 0)}/{at3.get('true', 0)} | "
             f"{ratio(('synthetic', profile, 'sl4', 'loops on, false rate 0.3'), sl4_on)} | "
             f"{sum(s['aborted'] for k, s in table.items() if k[1] == profile)} |")
@@ -172,7 +172,7 @@ def main() -> None:
         "the ATE by >= 30 %; at false-loop rate 0.3: >= 95 % of false proposals rejected, >= 80 % of true ones accepted, "
         "ATE <= 1.15x the rate-0 ATE; no run aborts.",
         "",
-        "| profile | SL(4) / Sim(3) | ATE change by loops | false rejected at 0.3 | true accepted at 0.3 | ATE at 0.3 / at 0 | aborted runs |",
+        "| profile | SL(4) / Sim(3) | ATE cut by loops | false rejected at 0.3 | true accepted at 0.3 | ATE at 0.3 / at 0 | aborted runs |",
         "|---|---|---|---|---|---|---|",
         *targets,
         "",
