@@ -10,7 +10,9 @@ each), keeps the pixels confident in both (an evenly strided subset beyond
   ``Alignment.fallback`` says so;
 - :class:`Sim3PointAligner` (``"sim3-points"``): 7-DOF Umeyama in RANSAC on the same points;
 - :class:`Sim3CameraAligner` (``"sim3-cameras"``): the shared frame's two cameras and the median
-  ratio of its depths (no point fit).
+  ratio of its depths (no point fit);
+- :class:`CalibrationAligner` (``"calibration"``, VGGT-SLAM 2.0): the shared frame's two cameras with
+  their intrinsics and the median depth ratio, as an SL(4) map (no point fit).
 
 Any of them offers :meth:`~sl4slam.types.Aligner.camera_edge`, the camera-and-depth measurement
 the pipeline falls back to when a fit fails (with an inflated sigma).
@@ -24,6 +26,7 @@ import numpy as np
 
 from ..config import AlignmentConfig, SLAMConfig, alignment_model
 from ..types import Aligner, Alignment, FrameView
+from .calibration import calibration_from_shared_frame
 from .camera_constrained import camera_constrained_sl4
 from .ransac import estimate_sim3, estimate_sl4
 from .sim3 import sim3_from_shared_frame
@@ -118,8 +121,19 @@ class Sim3CameraAligner(PointAligner):
         return sim3_from_shared_frame(view_a.T_cam_submap, view_b.T_cam_submap, X_a, X_b, self.config.inlier_threshold)
 
 
+class CalibrationAligner(PointAligner):
+    """The shared frame's calibration-and-scale link (VGGT-SLAM 2.0; ``sl4slam.alignment.calibration``)."""
+
+    model = "calibration"
+    group = "sl4"
+
+    def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
+        return calibration_from_shared_frame(view_a, view_b, X_a, X_b, self.config.inlier_threshold)
+
+
 ALIGNERS: dict[str, type[PointAligner]] = {
-    "sl4": SL4Aligner, "sim3-points": Sim3PointAligner, "sim3-cameras": Sim3CameraAligner}
+    "sl4": SL4Aligner, "calibration": CalibrationAligner, "sim3-points": Sim3PointAligner,
+    "sim3-cameras": Sim3CameraAligner}
 
 
 def make_aligner(config: SLAMConfig) -> Aligner:
