@@ -106,7 +106,7 @@ def reference_style_search(stored: torch.Tensor, queries: torch.Tensor, max_subm
 
 def bench_queries(repeats: int, threads: int) -> list[str]:
     counts = (1_000, 10_000, 50_000)
-    cases, loop_cases, checks, memory = {}, {}, {}, {}
+    cases, loop_cases, memory = {}, {}, {}
     for count in counts:
         stored = unit_rows(count, seed=3)
         submaps = np.arange(count) // FRAMES_PER_SUBMAP

@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-ORDER = ["pipeline", "accuracy", "ransac", "backend", "render", "retrieval_orb", "salad", "vggt"]
+ORDER = ["pipeline", "accuracy", "ransac", "backend", "render", "retrieval_orb", "salad", "vggt", "localize", "export", "viewer"]
 HEADER = """# Benchmarks
 
 Every figure below was measured by a script in `benchmarks/` (the command is given with each

@@ -16,7 +16,7 @@ from sl4slam.edges import camera_problem, edge_problem
 from sl4slam.geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse
 from sl4slam.pipeline import keyframe_cameras
 from sl4slam.submap import StoredKeyframe
-from sl4slam.synthetic.correspondences import frame_correspondences, near_identity_sl4, random_rotation
+from sl4slam.synthetic.correspondences import near_identity_sl4, random_rotation
 from sl4slam.types import Alignment, FrameView, SubmapPrediction
 
 GENERATORS = SL4Backend(BackendConfig()).generators()

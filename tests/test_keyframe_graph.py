@@ -14,10 +14,11 @@ import torch
 from safetensors.torch import load_file
 from scipy.spatial.transform import Rotation
 
-from sl4slam.alignment import calibration_from_shared_frame, calibration_link, calibration_scale
+from sl4slam.alignment.sim3 import calibration_scale_link
 from sl4slam.backend import BackendUpdateError, KeyframeBackend, SL4Backend, SubmapFrames, make_backend
 from sl4slam.backend.keyframe import sl4_adjoint, transport_information
 from sl4slam.config import BackendConfig, SLAMConfig, alignment_model, attention_check
+from sl4slam.edges import is_camera_link
 from sl4slam.errors import UserError
 from sl4slam.frontend import make_frontend
 from sl4slam.frontend.overlap import overlap_match_ratio
@@ -31,7 +32,6 @@ from sl4slam.pipeline import SLAMPipeline
 from sl4slam.retrieval import make_retrieval
 from sl4slam.runner import run_slam
 from sl4slam.synthetic import write_synthetic_sequence
-from sl4slam.types import FrameView
 
 GENERATORS = np.stack([np.asarray(gtsam.SL4.Hat(e)) for e in np.eye(15)])
 
@@ -53,50 +53,44 @@ def intrinsics(f: float, cx: float = 32.0, cy: float = 24.0) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------- the calibration-and-scale link
-def test_calibration_link_maps_each_pixel_onto_its_ray_with_the_depth_scaled() -> None:
-    K_a, K_b, s = intrinsics(50.0), intrinsics(60.0), 1.7
-    L = calibration_link(K_a, K_b, s)
-    expected = np.eye(4)
-    expected[:3, :3] = np.linalg.inv(K_a) @ K_b * s  # hand-computed: diag(K_a,1)^-1 diag(K_b,1) diag(s,s,s,1)
-    np.testing.assert_allclose(L, expected, atol=1e-12)
-    pixel, depth = np.array([10.0, 40.0, 1.0]), 2.5
-    X_b = depth * np.linalg.solve(K_b, pixel)  # the pixel's point in camera b
-    X_a = (L @ np.append(X_b, 1.0))[:3]
-    np.testing.assert_allclose(K_a @ X_a / X_a[2], pixel, atol=1e-12)  # same pixel in camera a
-    assert X_a[2] == pytest.approx(s * depth)  # at s times the depth
+def shared_frame(rng: np.random.Generator, K_a: np.ndarray, K_b: np.ndarray, s: float, height: int = 48,
+                 width: int = 64) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One frame reconstructed twice: with ``K_a`` and depth ``d`` in submap ``a``, with ``K_b`` and
+    ``d / s`` in submap ``b``. Returns ``depth, T_a, T_b, points_a, points_b``."""
+    depth = rng.uniform(1.0, 3.0, (height, width)).astype(np.float32)
+    T_a, T_b = rigid(rng), rigid(rng)
+    points_a = unproject_depth(depth[None], K_a[None], T_a[None])[0]
+    points_b = unproject_depth((depth / s)[None], K_b[None], T_b[None])[0]
+    return depth, T_a, T_b, points_a.reshape(-1, 3).astype(np.float64), points_b.reshape(-1, 3).astype(np.float64)
+
+
+def test_calibration_link_is_the_hand_computed_matrix_and_maps_pixels_onto_their_rays() -> None:
+    rng = np.random.default_rng(1)
+    K_a, K_b, s = intrinsics(55.0), intrinsics(48.0), 1.9
+    _, T_a, T_b, X_a, X_b = shared_frame(rng, K_a, K_b, s)
+    link = calibration_scale_link(K_a, T_a, K_b, T_b, X_a, X_b, inlier_threshold=1e-4)
+    assert link.extras["scale"] == pytest.approx(s, rel=1e-5) and is_camera_link(link)
+    L = np.eye(4)
+    L[:3, :3] = s * np.linalg.inv(K_a) @ K_b  # hand-computed: diag(K_a,1)^-1 diag(K_b,1) diag(s,s,s,1)
+    np.testing.assert_allclose(T_a @ link.H @ se3_inverse(T_b), L, rtol=1e-5, atol=1e-7)
+    assert link.inlier_ratio == 1.0 and link.rms < 1e-5  # exact between reconstructions that differ so
+    np.testing.assert_allclose(apply_transform(link.H, X_b), X_a, atol=1e-4)
+    pixel = np.array([10.0, 40.0, 1.0])  # a pixel of camera b at depth 2.5 lands on the same pixel of a
+    X_cam_a = (L @ np.append(2.5 * np.linalg.solve(K_b, pixel), 1.0))[:3]
+    np.testing.assert_allclose(K_a @ X_cam_a / X_cam_a[2], pixel, atol=1e-12)
 
 
 def test_calibration_scale_is_the_median_depth_ratio_despite_outliers() -> None:
     rng = np.random.default_rng(0)
     K_a, K_b, s = intrinsics(50.0), intrinsics(44.0), 0.62
-    pixels = np.c_[rng.uniform(0, 64, 2000), rng.uniform(0, 48, 2000), np.ones(2000)]
-    depth_b = rng.uniform(0.5, 4.0, 2000)
-    X_b = depth_b[:, None] * (pixels @ np.linalg.inv(K_b).T)
-    depth_a = s * depth_b * np.exp(rng.normal(scale=0.01, size=2000))
-    depth_a[:300] *= rng.uniform(1.5, 3.0, 300)  # 15 % gross outliers on one side
-    X_a = depth_a[:, None] * (pixels @ np.linalg.inv(K_a).T)
-    assert calibration_scale(X_a, X_b, K_a, K_b) == pytest.approx(s, rel=0.02)
-    with pytest.raises(ValueError, match="no finite points"):
-        calibration_scale(np.full((3, 3), np.nan), X_b[:3], K_a, K_b)
-
-
-def test_calibration_alignment_is_exact_between_reconstructions_that_differ_by_intrinsics_and_scale() -> None:
-    rng = np.random.default_rng(1)
-    height, width = 48, 64
-    depth = rng.uniform(1.0, 3.0, (height, width)).astype(np.float32)
-    K_a, K_b = intrinsics(55.0), intrinsics(48.0)
-    T_a, T_b, s = rigid(rng), rigid(rng), 1.9  # the frame's extrinsic in submaps a and b
-    # submap b reconstructed the frame with focal K_b and depth / s: the same image
-    points_a = unproject_depth(depth[None], K_a[None], T_a[None])[0]
-    points_b = unproject_depth((depth / s)[None], K_b[None], T_b[None])[0]
-    mask = np.ones((height, width), dtype=bool)
-    view_a, view_b = FrameView(points_a, mask, K_a, T_a), FrameView(points_b, mask, K_b, T_b)
-    X_a, X_b = points_a.reshape(-1, 3).astype(np.float64), points_b.reshape(-1, 3).astype(np.float64)
-    alignment = calibration_from_shared_frame(view_a, view_b, X_a, X_b, inlier_threshold=1e-4)
-    assert alignment.model == "calibration" and alignment.extras["scale"] == pytest.approx(s, rel=1e-5)
-    assert np.linalg.det(alignment.H) == pytest.approx(1.0)
-    assert alignment.inlier_ratio == 1.0 and alignment.rms < 1e-5
-    np.testing.assert_allclose(apply_transform(alignment.H, X_b), X_a, atol=1e-4)
+    depth, T_a, T_b, X_a, X_b = shared_frame(rng, K_a, K_b, s)
+    noisy = depth * np.exp(rng.normal(scale=0.01, size=depth.shape)).astype(np.float32)
+    noisy.reshape(-1)[:450] *= rng.uniform(1.5, 3.0, 450).astype(np.float32)  # 15 % gross outliers on one side
+    X_a = unproject_depth(noisy[None], K_a[None], T_a[None])[0].reshape(-1, 3).astype(np.float64)
+    link = calibration_scale_link(K_a, T_a, K_b, T_b, X_a, X_b)
+    assert link.extras["scale"] == pytest.approx(s, rel=0.03)
+    with pytest.raises(ValueError, match="finite"):
+        calibration_scale_link(K_a, T_a, K_b, T_b, np.full((3, 3), np.nan), X_b[:3])
 
 
 # ---------------------------------------------------------------------------- the graph's factors

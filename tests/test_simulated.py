@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from sl4slam.config import SimulatorConfig, config_from_dict
 from sl4slam.errors import UserError
 from sl4slam.frontend.simulated import SimulatedFrontend
-from sl4slam.geometry import apply_transform, se3_inverse, umeyama_sim3, unproject_depth
+from sl4slam.geometry import apply_transform, se3_inverse, to_4x4, umeyama_sim3, unproject_depth
 from sl4slam.submap import confidence_mask
 from sl4slam.types import Frame, Frontend
 
@@ -337,3 +337,212 @@ def test_tum_default_noise_is_mild(shared_dir):
     assert np.median(log_error) < 0.003  # depth_noise 0.002
     assert 0.01 < (log_error > 0.05).mean() < 0.03  # 2 % of pixels in blobs
     assert (prediction.confidence >= 1.0).all()
+
+
+# ---------------------------------------------------------------- VGGT-like error terms, each on its own
+
+
+def _rotation_angles_deg(R: np.ndarray) -> np.ndarray:
+    return np.degrees(Rotation.from_matrix(R).magnitude())
+
+
+def _one_term(frames: list[Frame], submap_id: int, **term):
+    """Prediction with only ``term`` switched on (metric units, no other corruption)."""
+    return SimulatedFrontend(dataclasses.replace(ZERO_CORRUPTION, **term)).reconstruct(frames, submap_id)
+
+
+def test_camera_error_moves_cameras_but_keeps_each_frames_own_depth():
+    frames = make_frames(4)
+    prediction = _one_term(frames, 3, camera_rotation_deg=2.0, camera_translation=0.02, seed=4)
+    X_true, T_cam_ref = true_points(frames)
+    T_pred = to_4x4(prediction.T_cam_submap)
+
+    np.testing.assert_allclose(prediction.T_cam_submap[0], np.eye(4)[:3], atol=1e-12)  # [I | 0] as VGGT's
+    np.testing.assert_allclose(prediction.depth, np.stack([f.depth for f in frames]), rtol=1e-6)
+    np.testing.assert_allclose(prediction.K, np.stack([f.K for f in frames]), atol=1e-9)
+    rotation_error = _rotation_angles_deg(T_pred[1:, :3, :3] @ np.swapaxes(T_cam_ref[1:, :3, :3], 1, 2))
+    assert (rotation_error > 0.2).all() and (rotation_error < 12).all()
+    mean_distance = np.linalg.norm(X_true, axis=-1).mean()
+    centre_error = np.linalg.norm(se3_inverse(T_pred)[1:, :3, 3] - se3_inverse(T_cam_ref)[1:, :3, 3], axis=-1)
+    assert (centre_error > 0.001 * mean_distance).all() and (centre_error < 0.15 * mean_distance).all()
+
+    # In its own (wrong) camera each frame's points are exactly right; in the submap they are misplaced.
+    points = unproject_depth(prediction.depth, prediction.K, prediction.T_cam_submap).astype(np.float64)
+    in_camera = np.einsum("sij,shwj->shwi", T_pred[:, :3, :3], points) + T_pred[:, None, None, :3, 3]
+    true_in_camera = np.einsum("sij,shwj->shwi", T_cam_ref[:, :3, :3], X_true) + T_cam_ref[:, None, None, :3, 3]
+    assert relative_error(in_camera, true_in_camera).max() < 1e-5
+    assert relative_error(points[0], X_true[0]).max() < 1e-5
+    assert (np.median(relative_error(points[1:], X_true[1:]), axis=(1, 2)) > 0.005).all()
+
+
+def test_camera_error_has_the_configured_spread_and_grows_past_the_window_length():
+    frames = make_frames(4)
+    config = dataclasses.replace(ZERO_CORRUPTION, camera_rotation_deg=1.5, camera_translation=0.01, seed=9)
+    _, T_cam_ref = true_points(frames)
+    rotation_vectors, centre_shifts = [], []
+    for submap_id in range(20):
+        T_pred = to_4x4(SimulatedFrontend(config).reconstruct(frames, submap_id).T_cam_submap)
+        R_error = np.swapaxes(T_cam_ref[1:, :3, :3], 1, 2) @ T_pred[1:, :3, :3]  # R_ref_cam_true^T R_ref_cam_pred
+        rotation_vectors.append(Rotation.from_matrix(R_error).as_rotvec())
+        centre_shifts.append(se3_inverse(T_pred)[1:, :3, 3] - se3_inverse(T_cam_ref)[1:, :3, 3])
+    X_true, _ = true_points(frames)
+    mean_distance = np.linalg.norm(X_true, axis=-1).mean()
+    assert abs(np.degrees(np.std(rotation_vectors)) / 1.5 - 1) < 0.2  # 180 draws
+    assert abs(np.std(centre_shifts) / (0.01 * mean_distance) - 1) < 0.2
+
+    # Four frames in windows of at most 2 "good" frames: every error twice as large, same draws.
+    short = dataclasses.replace(config, camera_window_frames=2)
+    base = to_4x4(SimulatedFrontend(config).reconstruct(frames, 0).T_cam_submap)
+    grown = to_4x4(SimulatedFrontend(short).reconstruct(frames, 0).T_cam_submap)
+    error_base = Rotation.from_matrix(np.swapaxes(T_cam_ref[1:, :3, :3], 1, 2) @ base[1:, :3, :3]).as_rotvec()
+    error_grown = Rotation.from_matrix(np.swapaxes(T_cam_ref[1:, :3, :3], 1, 2) @ grown[1:, :3, :3]).as_rotvec()
+    np.testing.assert_allclose(error_grown, 2.0 * error_base, rtol=1e-9)
+
+
+def test_focal_error_scales_the_focal_lengths_about_the_principal_point():
+    frames = make_frames(4)
+    prediction = _one_term(frames, 1, focal_error=0.05, seed=2)
+    K_true = np.stack([f.K for f in frames])
+    X_true, T_cam_ref = true_points(frames)
+
+    factor = prediction.K[:, 0, 0] / K_true[:, 0, 0]
+    np.testing.assert_allclose(prediction.K[:, 1, 1] / K_true[:, 1, 1], factor, rtol=1e-12)
+    np.testing.assert_allclose(prediction.K[:, :2, 2], K_true[:, :2, 2], atol=1e-9)  # principal point kept
+    np.testing.assert_allclose(prediction.principal_point, K_true[:, :2, 2], atol=0)
+    assert (np.abs(np.log(factor)) > 1e-4).all() and (np.abs(np.log(factor)) < 0.25).all()
+    assert len(np.unique(np.round(factor, 9))) == 4  # one draw per frame, the first frame included
+    np.testing.assert_allclose(prediction.depth, np.stack([f.depth for f in frames]), rtol=1e-6)
+    np.testing.assert_allclose(prediction.T_cam_submap, T_cam_ref[:, :3, :], atol=1e-9)
+
+    # Depth stays, so the points' lateral offsets from the principal ray shrink by the focal factor.
+    points = unproject_depth(prediction.depth, prediction.K, prediction.T_cam_submap).astype(np.float64)
+    true_cam = np.einsum("sij,shwj->shwi", T_cam_ref[:, :3, :3], X_true) + T_cam_ref[:, None, None, :3, 3]
+    pred_cam = np.einsum("sij,shwj->shwi", T_cam_ref[:, :3, :3], points) + T_cam_ref[:, None, None, :3, 3]
+    np.testing.assert_allclose(pred_cam[..., 2], true_cam[..., 2], rtol=1e-5)
+    np.testing.assert_allclose(pred_cam[..., :2], true_cam[..., :2] / factor[:, None, None, None], rtol=1e-4, atol=1e-6)
+
+
+def test_frame_consistency_shares_a_frames_focal_error_and_warp_across_submaps():
+    frames = make_frames(3)
+    for share, same in ((1.0, True), (0.0, False)):
+        config = dataclasses.replace(ZERO_CORRUPTION, focal_error=0.05, depth_warp=0.05, frame_consistency=share)
+        a = SimulatedFrontend(config).reconstruct(frames, 1)
+        b = SimulatedFrontend(config).reconstruct(frames, 2)
+        assert np.allclose(a.K, b.K, rtol=1e-12) == same
+        assert np.allclose(a.depth, b.depth, rtol=1e-6) == same
+    # A share in between: the submaps' warps of one frame are correlated, not equal.
+    config = dataclasses.replace(ZERO_CORRUPTION, depth_warp=0.05, frame_consistency=0.8)
+    truth = np.stack([f.depth for f in frames])
+    warp_a = np.log(SimulatedFrontend(config).reconstruct(frames, 1).depth / truth)
+    warp_b = np.log(SimulatedFrontend(config).reconstruct(frames, 2).depth / truth)
+    correlation = np.corrcoef(warp_a.ravel(), warp_b.ravel())[0, 1]
+    assert 0.5 < correlation < 0.99
+
+
+def test_depth_warp_is_smooth_and_not_projective():
+    frames = make_frames(3)
+    prediction = _one_term(frames, 0, depth_warp=0.05, seed=6)
+    truth = np.stack([f.depth for f in frames])
+    X_true, T_cam_ref = true_points(frames)
+    np.testing.assert_allclose(prediction.T_cam_submap, T_cam_ref[:, :3, :], atol=1e-9)
+    np.testing.assert_allclose(prediction.K, np.stack([f.K for f in frames]), atol=1e-9)
+
+    log_ratio = np.log(prediction.depth.astype(np.float64) / truth)
+    np.testing.assert_allclose(log_ratio.std(axis=(1, 2)), 0.05, rtol=1e-3)  # a unit field times depth_warp
+    assert np.abs(log_ratio.mean(axis=(1, 2))).max() < 1e-3
+    step = np.diff(log_ratio, axis=2).std()  # neighbouring pixels: almost the same factor
+    assert step < 0.05 * 0.05
+    # A projective map fixing the camera scales depth by 1 / (a . X_cam + b); the warp is not that.
+    for i in range(3):
+        X_cam = np.einsum("ij,hwj->hwi", T_cam_ref[i, :3, :3], X_true[i]) + T_cam_ref[i, :3, 3]
+        design = np.concatenate([X_cam.reshape(-1, 3), np.ones((X_cam[..., 0].size, 1))], axis=1)
+        inverse_ratio = np.exp(-log_ratio[i]).ravel()
+        coefficients = np.linalg.lstsq(design, inverse_ratio, rcond=None)[0]
+        assert (inverse_ratio - design @ coefficients).std() > 0.01
+
+
+def _step_frame(width: int = 64, height: int = 48) -> Frame:
+    """A frontal wall at 4 m with a square at 2 m in front of it: sharp depth edges."""
+    K = np.array([[60.0, 0.0, (width - 1) / 2], [0.0, 60.0, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    depth = np.full((height, width), 4.0, np.float32)
+    depth[14:34, 20:44] = 2.0
+    rgb = np.zeros((height, width, 3), np.uint8)
+    return Frame(index=0, timestamp=0.0, rgb=rgb, depth=depth, T_world_cam=np.eye(4), K=K)
+
+
+def test_flying_pixels_sit_between_foreground_and_background_on_edges_with_low_confidence():
+    frame = _step_frame()
+    config = dataclasses.replace(ZERO_CORRUPTION, flying_px=2.0, seed=3)
+    prediction = SimulatedFrontend(config).reconstruct([frame], 0)
+    truth = frame.depth
+
+    # Expected band: pixels within 2 px of a pixel whose 4-neighbour lies on the other side of the step.
+    square = truth < 3.0
+    edge = square ^ ndimage.binary_erosion(square, border_value=1)
+    edge |= ~square & ndimage.binary_dilation(square, structure=ndimage.generate_binary_structure(2, 1))
+    dy, dx = np.mgrid[-2:3, -2:3]
+    band = ndimage.binary_dilation(edge, structure=dx**2 + dy**2 <= 4)
+    changed = np.abs(prediction.depth[0] - truth) > 1e-6
+    np.testing.assert_array_equal(changed, band)
+    flying = prediction.depth[0][band]
+    assert flying.min() >= 2.0 - 1e-6 and flying.max() <= 4.0 + 1e-6
+    assert flying.std() > 0.3  # strung out between the two surfaces, not stuck on one
+    clean_excess = (prediction.confidence[0][~band] - 1).mean()
+    assert (prediction.confidence[0][band] - 1).mean() < 0.05 * clean_excess
+
+    # Smooth surfaces (the room's walls, even at grazing angles and in corners) have none.
+    room = make_frames(3)
+    smooth = SimulatedFrontend(config).reconstruct(room, 0)
+    np.testing.assert_allclose(smooth.depth, np.stack([f.depth for f in room]), rtol=1e-6)
+
+
+def test_scale_gauge_scales_whole_submaps_within_the_ratio():
+    frames = make_frames(2)
+    config = dataclasses.replace(ZERO_CORRUPTION, gauge_scale_ratio=2.0, seed=8)
+    frontend = SimulatedFrontend(config)
+    X_true, T_cam_ref = true_points(frames)
+    scales = []
+    for submap_id in range(30):
+        H = frontend.distortion(frames, submap_id)
+        block = H[:3, :3] / H[3, 3]
+        np.testing.assert_allclose(block, block[0, 0] * np.eye(3), atol=1e-12)
+        assert np.allclose(H[3, :3], 0) and np.allclose(H[:3, 3], 0)
+        scales.append(block[0, 0])
+    scales = np.array(scales)
+    assert scales.max() / scales.min() <= 2.0 and scales.max() / scales.min() > 1.6
+
+    prediction = frontend.reconstruct(frames, 7)
+    s = scales[7]
+    points = unproject_depth(prediction.depth, prediction.K, prediction.T_cam_submap)
+    assert relative_error(points, s * X_true).max() < 1e-5
+    np.testing.assert_allclose(prediction.T_cam_submap[0], np.eye(4)[:3], atol=1e-12)
+    np.testing.assert_allclose(prediction.T_cam_submap[:, :, :3], T_cam_ref[:, :3, :3], atol=1e-9)
+    np.testing.assert_allclose(prediction.T_cam_submap[:, :, 3], s * T_cam_ref[:, :3, 3], atol=1e-9)
+    # Submap 0 defines the world frame: left alone when distort_first_submap is off.
+    first = SimulatedFrontend(dataclasses.replace(config, distort_first_submap=False)).distortion(frames, 0)
+    np.testing.assert_allclose(first, np.eye(4), atol=1e-12)
+
+
+def test_principal_point_is_recorded_and_replayed(tmp_path):
+    from sl4slam.frontend.cache import CachingFrontend, ReplayFrontend
+
+    frames = make_frames(2)
+    recorded = CachingFrontend(SimulatedFrontend(ZERO_CORRUPTION), tmp_path).reconstruct(frames, 0)
+    np.testing.assert_array_equal(recorded.principal_point, np.stack([f.K[:2, 2] for f in frames]))
+    assert recorded.principal_point.dtype == np.float64
+    replayed = ReplayFrontend(tmp_path).reconstruct(frames, 0)
+    np.testing.assert_array_equal(replayed.principal_point, recorded.principal_point)
+
+
+@pytest.mark.parametrize("setting, flag", [
+    ({"camera_rotation_deg": -1.0}, "--sim-camera-rotation-deg"), ({"camera_translation": 2.0}, "--sim-camera-translation"),
+    ({"focal_error": 0.9}, "--sim-focal-error"), ({"camera_window_frames": 0}, "--sim-camera-window-frames"),
+    ({"depth_warp": -0.1}, "--sim-depth-warp"), ({"depth_warp_length": 0.0}, "--sim-depth-warp-length"),
+    ({"flying_px": 0.5}, "--sim-flying-px"), ({"flying_jump": 0.0}, "--sim-flying-jump"),
+    ({"gauge_scale_ratio": 0.5}, "--sim-gauge-scale-ratio"), ({"frame_consistency": 1.5}, "--sim-frame-consistency"),
+    ({"depth_warp": float("nan")}, "--sim-depth-warp"), ({"profile": "vgg"}, "--sim-profile"),
+])
+def test_new_settings_out_of_range_are_one_line_errors_at_construction(setting, flag):
+    with pytest.raises(UserError, match=flag) as error:
+        SimulatedFrontend(SimulatorConfig(**setting))
+    assert "\n" not in str(error.value)

@@ -2,7 +2,9 @@
 
 ``sl4slam run SOURCE --out DIR`` runs the pipeline; ``sl4slam demo`` the synthetic SL(4)-vs-Sim(3)
 comparison; ``sl4slam synth`` writes the synthetic world; ``sl4slam convert`` converts VGGT weights;
-``sl4slam ate`` evaluates a trajectory. Run flags are generated from the config dataclasses
+``sl4slam ate`` evaluates a trajectory; ``sl4slam view`` shows a result in the browser; ``sl4slam export``
+writes it for COLMAP / nerfstudio / PLY tools; ``sl4slam eval`` / ``sl4slam sweep`` run the paper's
+TUM RGB-D / 7-Scenes protocol. Run flags are generated from the config dataclasses
 (``sl4slam.config``), so every setting, its default and its documentation live in one place.
 """
 
@@ -19,7 +21,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from . import __version__
-from .config import SLAMConfig, load_config
+from .config import SLAMConfig, config_from_dict, read_config_file
 from .config import sections as sections_of
 from .errors import UserError
 
@@ -91,8 +93,16 @@ def add_config_flags(parser: argparse.ArgumentParser, config: Any = None) -> Non
 
 
 def config_from_args(args: argparse.Namespace) -> SLAMConfig:
-    """Defaults, then ``--config FILE``, then explicit flags."""
-    config = load_config(args.config) if getattr(args, "config", None) else SLAMConfig()
+    """Defaults, then ``--config FILE``, then explicit flags.
+
+    ``--sim-profile`` replaces the file's ``[sim] profile`` and, like it, is applied before every
+    explicit simulator setting (the file's and the flags'), whatever their order.
+    """
+    values = read_config_file(args.config) if getattr(args, "config", None) else {}
+    profile = vars(args).get("sim.profile")
+    if profile is not None and isinstance(values.get("sim", {}), dict):
+        values = {**values, "sim": {**values.get("sim", {}), "profile": profile}}
+    config = config_from_dict(values, SLAMConfig())
     for dest, value in vars(args).items():
         if "." in dest:
             section, name = dest.split(".", 1)
@@ -107,8 +117,42 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .runner import run_slam
 
     config = config_from_args(args)
-    run_slam(args.source, args.out, config, replay_dir=args.replay, progress=not args.quiet, overwrite=args.overwrite)
+    view = _viewer_settings(args) if args.view else None
+    run_slam(args.source, args.out, config, replay_dir=args.replay, progress=not args.quiet, overwrite=args.overwrite,
+             view=view, all_frames=args.all_frames, keep_viewer=view is not None)
     return 0
+
+
+def _viewer_settings(args: argparse.Namespace):
+    from .viewer.scene import ViewerSettings
+
+    return ViewerSettings(host=args.host, port=args.port, point_budget=getattr(args, "point_budget", ViewerSettings.point_budget))
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from .viewer import view_result
+
+    view_result(args.result, _viewer_settings(args))
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from .export import export_result
+
+    options = {} if args.format == "ply" else {"max_points": args.max_points}
+    if args.format != "ply":
+        options["image_ext"] = "." + args.image_format
+    if args.format == "colmap":
+        options.update(binary=True, text=args.text)
+    report = export_result(args.result, args.format, args.out, **options)
+    print(report.line())
+    return 0
+
+
+def _add_viewer_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="interface the viewer binds; other than loopback exposes the map to the network")
+    parser.add_argument("--port", type=int, default=8080, help="viewer port (the next free one when taken)")
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -119,12 +163,62 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from .synthetic import write_synthetic_sequence
+    from .synthetic import write_seven_scenes_sequence, write_synthetic_sequence
 
+    if args.layout == "7scenes":
+        path = write_seven_scenes_sequence(args.out, num_frames=args.frames, width=args.width, height=args.height,
+                                           seed=args.seed, overwrite=args.overwrite)
+        print(f"wrote {args.frames} frames to {path} (7-Scenes layout)")
+        return 0
     path = write_synthetic_sequence(args.out, num_frames=args.frames, width=args.width, height=args.height, seed=args.seed,
                                     overwrite=args.overwrite)
     print(f"wrote {args.frames} frames to {path} (contact sheet: {Path(path) / 'contact_sheet.png'})")
     return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from .evaluation import EvalSettings, evaluate
+
+    fixed_seeds = [f"--{'sim' if d == 'sim.seed' else 'ransac'}-seed" for d in ("sim.seed", "alignment.seed") if d in vars(args)]
+    if fixed_seeds:
+        raise UserError(f"{' and '.join(fixed_seeds)} cannot be set here: run r uses seed r; choose the seeds with --runs")
+    config = config_from_args(args)
+    settings = EvalSettings(dataset=args.dataset, runs=args.runs, dense=not args.no_dense,
+                            keep_keyframe_points=args.keep_keyframe_points)
+    outcome = evaluate(
+        args.root, args.out, settings=settings, config=config, grid=args.grid, sequences=args.sequences,
+        workers=args.workers, threads=args.threads, ray=args.ray is not None, ray_address=args.ray or None,
+        replay_dir=args.replay, progress=not args.quiet,
+    )
+    print(Path(outcome.files["tables"]).read_text())
+    failed = sum(1 for r in outcome.results if r["status"] != "ok")
+    print(f"{len(outcome.results)} run(s): {outcome.computed} computed, {outcome.reused} reused, {failed} failed; "
+          f"{outcome.seconds:.1f} s. Tables {outcome.files['tables']}, runs {outcome.files['runs']}, "
+          f"JSON {outcome.files['json']}, {len(outcome.files['figures'])} figure(s) in {Path(args.out) / 'figures'}")
+    return 1 if failed else 0
+
+
+def _add_eval_arguments(parser: argparse.ArgumentParser, grid_required: bool) -> None:
+    parser.add_argument("root", help="dataset root: rgbd_dataset_freiburg1_* folders (tum) or <scene>/seq-01 folders (7scenes)")
+    parser.add_argument("--dataset", required=True, choices=["tum", "7scenes"], help="benchmark layout and protocol")
+    parser.add_argument("--out", required=True, help="output folder (runs, frontend caches, tables); an earlier evaluation there is resumed")
+    parser.add_argument("--sequences", nargs="+", metavar="NAME",
+                        help="sequences (desk, chess, ...) or folders under the root (default: the paper's, all present)")
+    parser.add_argument("--runs", type=int, default=5, help="runs per sequence; run r uses seed r for sim.seed and alignment.seed")
+    parser.add_argument("--grid", nargs="+", required=grid_required, metavar="SETTING=V1,V2",
+                        help="sweep settings, e.g. submap.size=8,16,32 backend.kind=sl4,sim3 (their product; one table each)")
+    parser.add_argument("--workers", type=int, help="parallel runs (default: one per core; one per GPU for model runs on GPUs)")
+    parser.add_argument("--threads", type=int, help="torch / OpenCV / BLAS threads per run (default: cores / workers)")
+    parser.add_argument("--ray", nargs="?", const="", metavar="ADDRESS",
+                        help="run on Ray: join the cluster at ADDRESS (or RAY_ADDRESS), else start a local instance")
+    parser.add_argument("--replay", metavar="DIR", help="frontend_cache/ folder of an earlier evaluation to replay from")
+    parser.add_argument("--no-dense", action="store_true", help="7-Scenes: skip the dense metrics (no Open3D needed)")
+    parser.add_argument("--keep-keyframe-points", action="store_true",
+                        help="keep each run's keyframes/ (per-keyframe dense points; GBs for a full evaluation)")
+    parser.add_argument("--config", help="TOML or JSON file of run settings (flags override it)")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_config_flags(parser)
+    parser.set_defaults(func=cmd_eval)
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
@@ -163,8 +257,29 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--replay", help="replay recorded frontend outputs from this folder instead of running the model")
     run.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out (its files are removed first)")
     run.add_argument("--quiet", action="store_true", help="no progress output")
+    run.add_argument("--view", action="store_true",
+                     help="watch the map grow in the browser (needs sl4slam[viewer]); it stays open after the run until Ctrl-C")
+    _add_viewer_flags(run)
+    run.add_argument("--all-frames", action="store_true",
+                     help="also localize every other frame against its nearest keyframe: trajectory_all.txt")
     add_config_flags(run)
     run.set_defaults(func=cmd_run)
+
+    view = verbs.add_parser("view", help="show a result folder in the browser (needs sl4slam[viewer])")
+    view.add_argument("result", help="the --out folder of a run")
+    _add_viewer_flags(view)
+    view.add_argument("--point-budget", type=int, default=1_000_000, help="most points sent to the browser")
+    view.set_defaults(func=cmd_view)
+
+    export = verbs.add_parser("export", help="export a result folder: COLMAP sparse model, nerfstudio, per-submap PLY")
+    export.add_argument("result", help="the --out folder of a run")
+    export.add_argument("--format", required=True, choices=["colmap", "nerfstudio", "ply"])
+    export.add_argument("--out", help="output folder (default: RESULT/export_FORMAT)")
+    export.add_argument("--max-points", type=int, default=1_000_000, help="points in the COLMAP / nerfstudio point cloud")
+    export.add_argument("--text", action="store_true", help="COLMAP: also write the .txt model beside the .bin one")
+    export.add_argument("--image-format", choices=["png", "jpg"], default="png",
+                        help="keyframe images: png (lossless) or jpg (quality 95, several times faster to write)")
+    export.set_defaults(func=cmd_export)
 
     demo = verbs.add_parser("demo", help="synthetic world: SL(4) versus Sim(3) under a projective distortion")
     demo.add_argument("--out", default="sl4slam_demo", help="output folder")
@@ -173,14 +288,23 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--quiet", action="store_true", help="no progress bar")
     demo.set_defaults(func=cmd_demo)
 
-    synth = verbs.add_parser("synth", help="render the synthetic RGB-D world to a TUM-format folder")
-    synth.add_argument("--out", required=True, help="output folder")
+    synth = verbs.add_parser("synth", help="render the synthetic RGB-D world as a TUM RGB-D or 7-Scenes sequence")
+    synth.add_argument("--out", required=True, help="output folder (for an evaluation root: ROOT/NAME, or ROOT/SCENE/seq-01)")
+    synth.add_argument("--layout", choices=["tum", "7scenes"], default="tum",
+                       help="tum: rgb.txt, depth.txt, groundtruth.txt; 7scenes: frame-XXXXXX.{color,depth}.png, .pose.txt")
     synth.add_argument("--frames", type=int, default=600)
     synth.add_argument("--width", type=int, default=320)
     synth.add_argument("--height", type=int, default=240)
     synth.add_argument("--seed", type=int, default=0)
     synth.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     synth.set_defaults(func=cmd_synth)
+
+    evaluation = verbs.add_parser("eval", help="evaluate on TUM RGB-D or 7-Scenes with the paper's protocol (tables, CSV, JSON, figures)",
+                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    _add_eval_arguments(evaluation, grid_required=False)
+    sweep = verbs.add_parser("sweep", help="eval over a grid of settings x seeds (--grid), locally in parallel or on Ray",
+                             formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    _add_eval_arguments(sweep, grid_required=True)
 
     convert = verbs.add_parser("convert", help="write a .safetensors copy of a VGGT checkpoint")
     convert.add_argument("src", help="checkpoint (.pt or .safetensors)")

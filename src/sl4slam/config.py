@@ -134,9 +134,11 @@ class AlignmentConfig(Section):
         "model": "--alignment", "min_points": "--alignment-min-points",
         "min_inlier_ratio": "--alignment-min-inlier-ratio", "max_condition": "--alignment-max-condition"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
-        "model": ("auto", "sl4", "calibration", "sim3-points", "sim3-cameras")}
+        "model": ("auto", "sl4", "calibration", "sim3-points", "sim3-cameras"),
+        "planar_model": ("calibration-scale", "camera-constrained")}
     advanced: ClassVar[frozenset[str]] = frozenset({
-        "max_correspondences", "max_points", "max_refit_points", "planarity_threshold", "refit",
+        "max_correspondences", "max_points", "max_refit_points", "planarity_threshold", "min_relief", "planar_model",
+        "near_planar_threshold", "refit",
         "hypothesis_batch", "early_stop_spread", "preemptive_points", "preemptive_keep",
         "preemptive_min_keep", "refit_rounds", "refit_min_gain", "small_set",
         "camera_constrained_iterations", "camera_constrained_ridge", "min_points", "min_inlier_ratio",
@@ -172,6 +174,20 @@ class AlignmentConfig(Section):
     """Spread of the points along their thinnest principal axis relative to the widest
     (interdecile ranges, robust to a few off-plane points) below which they count as coplanar:
     the 15-DOF fit is degenerate and a constrained model is used instead."""
+    min_relief: float = 0.1
+    """Relief of the shared frame's points off their best plane (interdecile thickness / median
+    distance to the camera) below which the 15-DOF fit is degenerate: VGGT's depth errors (AbsRel
+    2-4 %, smooth) fake about that much structure on a flat floor, which RANSAC then turns into a
+    projective error (benchmarks/bench_robustness.py). Rooms and desks seen from 1-3 m: 0.2-0.3."""
+    planar_model: str = "calibration-scale"
+    """What measures a degenerate shared frame: "calibration-scale" (its two cameras and depth
+    ratio: VGGT-SLAM 2.0's link, immune to depth warps) or "camera-constrained" (a projective fit
+    whose free part the points choose)."""
+    near_planar_threshold: float = 0.15
+    """Below this planarity (but above ``planarity_threshold``) the shared frame is dominated by a
+    plane, where RANSAC may settle on the plane and call the rest outliers (on the synthetic world:
+    a 0.08-planarity frame with 2.5 % "outliers" and a 0.4-unit error off the plane): the
+    camera-constrained fit competes and wins when it explains more points."""
     refit: bool = True
     """Least-squares refit of H on all inliers, then re-score (the reference code does not)."""
     seed: int = 0
@@ -224,6 +240,9 @@ class AlignmentConfig(Section):
         self._require("max_refit_points", self.max_refit_points >= 0, ">= 0 (0: all)")
         self._require("min_inliers", self.min_inliers >= 5, "at least 5 (one minimal sample)")
         self._require("planarity_threshold", 0 <= self.planarity_threshold < 1, "in [0, 1)")
+        self._require("min_relief", 0 <= self.min_relief < 1, "in [0, 1)")
+        self._require("near_planar_threshold", self.planarity_threshold <= self.near_planar_threshold <= 1,
+                      "between --ransac-planarity-threshold and 1")
         self._require("seed", self.seed >= 0, ">= 0")
         self._require("hypothesis_batch", self.hypothesis_batch >= 1, "at least 1")
         self._require("early_stop_spread", 0 <= self.early_stop_spread <= 1, "in [0, 1]")
@@ -440,18 +459,31 @@ class LoopConfig(Section):
         self._require("min_match_ratio", self.min_match_ratio >= 0, ">= 0")
 
 
+SIM_PROFILES = ("exact", "vggt", "hard")
+"""Error profiles of the simulated frontend (:data:`SIM_PROFILE_VALUES` holds their settings)."""
+
+
 @dataclass
 class SimulatorConfig(Section):
     """Corruption model of the simulated frontend (``sl4slam.frontend.simulated`` documents it in full).
 
-    Every submap gets its own projective distortion ``H_s`` in SL(4); every frame of every submap
-    gets its own depth noise, outlier blobs and confidence. All of it is drawn from ``seed``, the
-    submap id and the frame indices, so a run is exactly reproducible.
+    Every submap gets its own projective distortion ``H_s`` in SL(4) and scale gauge; every frame of
+    every submap gets its own camera and focal error, depth noise, smooth depth warp, flying pixels at
+    depth edges, outlier blobs and confidence. All of it is drawn from ``seed``, the submap id and the
+    frame indices, so a run is exactly reproducible. ``profile`` sets the defaults of all error
+    magnitudes at once (``SimulatorConfig.from_profile``, ``--sim-profile``, ``[sim] profile``);
+    explicit settings override it.
     """
 
     section: ClassVar[str] = "sim"
     flag_prefix: ClassVar[str] = "sim-"
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {"profile": SIM_PROFILES}
 
+    profile: str = "exact"
+    """Error profile the settings started from: "exact" (each setting's own default: one exact SL(4)
+    transform per submap, cameras exact, small depth noise), "vggt" (calibrated to published VGGT
+    figures, cited in ``sl4slam.frontend.simulated``) or "hard" (the upper ends of those ranges, more
+    flying pixels and outliers). Applied before any explicit setting; recorded in summary.json."""
     perspective: float = 0.0
     """Norm of the perspective row ``p`` of ``H_s`` (what Sim(3) cannot model), in units of
     1 / (the submap's mean point distance): a point at the mean distance has its homogeneous
@@ -461,12 +493,52 @@ class SimulatorConfig(Section):
     off-diagonal entries ~ N(0, shear^2), log stretches ~ N(0, shear^2) minus their mean. 0: none."""
     scale: float = 0.0
     """Standard deviation of the log of the per-submap global scale of ``H_s``. 0: none."""
+    gauge_scale_ratio: float = 1.0
+    """Scale gauge of each submap: its points and camera centres are multiplied by a factor drawn
+    log-uniformly in [r^-1/2, r^1/2], so one window's scale relative to any other is within
+    [1/r, r] (VGGT: ratios of 0.5 to 2 between consecutive windows are seen in practice, r = 2).
+    Rotation and translation of a Sim(3) gauge are fixed by the first camera being [I | 0]. 1: none."""
     normalize_scale: bool = True
     """Scale each submap so the mean distance of its valid true points to the first camera is 1,
     as VGGT normalizes its outputs; off: submaps keep metric units (before ``scale``)."""
+    camera_rotation_deg: float = 0.0
+    """Per-frame camera rotation error inside a submap (all frames but the first, which stays
+    [I | 0] as VGGT's does): std in degrees of each component of a rotation vector about the
+    camera centre. A pair of frames then disagrees by about 2.2x this in median (VGGT on indoor
+    video: 1-3 degrees median relative rotation error, Depth Anything 3's table). 0: none."""
+    camera_translation: float = 0.0
+    """Per-frame camera centre error (all frames but the first): std of each coordinate as a
+    fraction of the submap's mean true point distance. 0: none."""
+    focal_error: float = 0.0
+    """Per-frame focal error: fx and fy are multiplied by ``exp(focal_error * n)``, n ~ N(0, 1),
+    about the principal point, which stays where it is (VGGT assumes the image centre; its focal
+    length is off by up to about 7 %). 0: none."""
+    camera_window_frames: int = 100
+    """Window length (frames) beyond which the camera rotation, translation and focal errors grow
+    in proportion to the length (VGGT's quality falls as windows grow past about 100 frames)."""
     depth_noise: float = 0.002
     """Relative depth noise sigma: depth is multiplied by ``exp(depth_noise * n)``, n ~ N(0, 1)
     per pixel, so the error grows with depth."""
+    depth_warp: float = 0.0
+    """Smooth non-projective depth error per frame: depth is multiplied by ``exp(depth_warp * f)``
+    with ``f`` a zero-mean, unit-variance smooth random field (VGGT's depth errors are mostly
+    low-frequency; AbsRel 2-4 % indoors). 0: none."""
+    depth_warp_length: float = 0.3
+    """Correlation length of the depth warp field as a fraction of the image width."""
+    frame_consistency: float = 0.0
+    """Share of the variance of a frame's focal error and depth warp that belongs to the frame
+    itself, the same in every submap that contains it; the rest is drawn per submap. VGGT's depth
+    and focal length come mostly from the image itself, so two windows sharing a frame predict it
+    alike (the paper's RANSAC inlier threshold, 1 % of the scene scale between the shared frame's
+    two predictions, presumes so). 0: independent per submap."""
+    flying_px: float = 0.0
+    """Flying pixels: within this many px of a depth discontinuity, the depth is interpolated
+    between the local foreground and background (a random mix per pixel, smooth over the band),
+    with the low confidence of outliers (``outlier_confidence``), as a regression head blurs
+    depth edges. 0: none."""
+    flying_jump: float = 0.1
+    """Relative depth jump between two adjacent pixels (larger / smaller - 1) that makes a depth
+    discontinuity for ``flying_px``; smooth surfaces, even at grazing angles, stay below it."""
     outlier_fraction: float = 0.02
     """Fraction of each frame's pixels inside outlier blobs (spatially coherent errors)."""
     outlier_blob_px: float = 12.0
@@ -480,13 +552,15 @@ class SimulatorConfig(Section):
     confidence_jitter: float = 0.2
     """Log-normal spread of the confidence of clean pixels (so it is not a function of depth alone)."""
     outlier_confidence: float = 0.02
-    """Factor on the confidence excess (confidence - 1) inside outlier blobs; pixels with no
-    measured depth (filled from their nearest neighbour) get confidence exactly 1."""
+    """Factor on the confidence excess (confidence - 1) inside outlier blobs and on flying pixels;
+    pixels with no measured depth (filled from their nearest neighbour) get confidence exactly 1."""
     distort_first_submap: bool = True
-    """Distort submap 0 too. The world frame is submap 0's frame, so its distortion is inherited
-    by every backend alike; switching it off isolates the error that alignment adds."""
+    """Distort submap 0 too (``H_s`` and the scale gauge). The world frame is submap 0's frame, so
+    its distortion is inherited by every backend alike; switching it off isolates the error that
+    alignment adds."""
     seed: int = 0
-    """Seed (>= 0); ``H_s`` is drawn from (seed, submap id), noise from (seed, submap id, frame index)."""
+    """Seed (>= 0); ``H_s`` and the gauge are drawn from (seed, submap id), per-frame errors from
+    (seed, submap id, frame index)."""
     false_loop_rate: float = 0.0
     """Fraction of the retrieval's loop proposals replaced by wrong places (``sl4slam.retrieval.false_loops``),
     to measure the loop checks. 0: off."""
@@ -500,17 +574,92 @@ class SimulatorConfig(Section):
 
     def validate(self) -> None:
         super().validate()
-        for name in ("perspective", "shear", "scale", "depth_noise", "outlier_magnitude", "confidence_jitter"):
-            self._require(name, getattr(self, name) >= 0, ">= 0")
-        self._require("outlier_fraction", 0 <= self.outlier_fraction < 1, "in [0, 1)")
-        self._require("outlier_blob_px", self.outlier_blob_px > 0, "> 0 px")
-        self._require("confidence_scale", self.confidence_scale > 0, "> 0")
-        self._require("outlier_confidence", 0 <= self.outlier_confidence <= 1, "in [0, 1]")
-        self._require("seed", self.seed >= 0, ">= 0")
+        self._require("profile", self.profile in SIM_PROFILES, "one of " + ", ".join(SIM_PROFILES))
+        checks = [
+            ("perspective", self.perspective >= 0, ">= 0"),
+            ("shear", self.shear >= 0, ">= 0"),
+            ("scale", self.scale >= 0, ">= 0"),
+            ("gauge_scale_ratio", 1 <= self.gauge_scale_ratio <= 10, "in [1, 10] (1: no scale gauge)"),
+            ("camera_rotation_deg", 0 <= self.camera_rotation_deg <= 30, "in [0, 30] degrees"),
+            ("camera_translation", 0 <= self.camera_translation <= 1, "in [0, 1] (a fraction of the mean point distance)"),
+            ("focal_error", 0 <= self.focal_error <= 0.5, "in [0, 0.5]"),
+            ("camera_window_frames", self.camera_window_frames >= 1, ">= 1"),
+            ("depth_noise", self.depth_noise >= 0, ">= 0"),
+            ("depth_warp", 0 <= self.depth_warp <= 1, "in [0, 1]"),
+            ("depth_warp_length", self.depth_warp_length > 0, "> 0 (a fraction of the image width)"),
+            ("flying_px", self.flying_px == 0 or 1 <= self.flying_px <= 50, "0 (off) or in [1, 50] px"),
+            ("flying_jump", self.flying_jump > 0, "> 0"),
+            ("frame_consistency", 0 <= self.frame_consistency <= 1, "in [0, 1]"),
+            ("outlier_fraction", 0 <= self.outlier_fraction < 1, "in [0, 1)"),
+            ("outlier_blob_px", self.outlier_blob_px > 0, "> 0"),
+            ("outlier_magnitude", self.outlier_magnitude >= 0, ">= 0"),
+            ("confidence_scale", self.confidence_scale > 0, "> 0"),
+            ("confidence_jitter", self.confidence_jitter >= 0, ">= 0"),
+            ("outlier_confidence", 0 <= self.outlier_confidence <= 1, "in [0, 1]"),
+            ("seed", self.seed >= 0, ">= 0"),
+        ]
+        for name, ok, allowed in checks:
+            self._require(name, bool(ok), allowed)
         self._require("false_loop_rate", 0 <= self.false_loop_rate <= 1, "in [0, 1]")
         self._require("false_loop_min_distance", self.false_loop_min_distance >= 0, ">= 0 m")
         self._require("false_loop_min_angle", 0 <= self.false_loop_min_angle <= 180, "in [0, 180] degrees")
         self._require("false_loop_max_overlap", 0 <= self.false_loop_max_overlap <= 1, "in [0, 1]")
+
+    @classmethod
+    def from_profile(cls, profile: str, **overrides: Any) -> "SimulatorConfig":
+        """Settings of ``profile`` with ``overrides`` on top (the Python form of ``--sim-profile``)."""
+        config = cls()
+        apply_sim_profile(config, profile)
+        for key, value in overrides.items():
+            if key not in {f.name for f in dataclasses.fields(cls)} or key == "profile":
+                raise UserError(f"unknown simulator setting '{key}'")
+            setattr(config, key, value)
+        return config
+
+
+# Settings a profile sets; the others (seed, normalize_scale, distort_first_submap) say how to run.
+_PROFILED = (
+    "perspective", "shear", "scale", "gauge_scale_ratio", "camera_rotation_deg", "camera_translation",
+    "focal_error", "camera_window_frames", "depth_noise", "depth_warp", "depth_warp_length",
+    "frame_consistency", "flying_px", "flying_jump", "outlier_fraction", "outlier_blob_px",
+    "outlier_magnitude", "confidence_scale", "confidence_jitter", "outlier_confidence",
+)
+
+SIM_PROFILE_VALUES: dict[str, dict[str, Any]] = {
+    # The defaults above, bit for bit.
+    "exact": {},
+    # VGGT on indoor video; each value's source is in sl4slam.frontend.simulated's docstring,
+    # the resulting statistics are measured by tests/test_sim_profile.py.
+    "vggt": dict(
+        perspective=0.02, shear=0.01, gauge_scale_ratio=2.0, camera_rotation_deg=0.75,
+        camera_translation=0.003, focal_error=0.03, depth_noise=0.005, depth_warp=0.025, frame_consistency=0.8,
+        flying_px=1.5, outlier_fraction=0.02, outlier_magnitude=0.3,
+    ),
+    # The upper ends of the published ranges, more flying pixels and outliers.
+    "hard": dict(
+        perspective=0.05, shear=0.03, gauge_scale_ratio=2.0, camera_rotation_deg=1.3,
+        camera_translation=0.006, focal_error=0.05, depth_noise=0.01, depth_warp=0.04, frame_consistency=0.6,
+        flying_px=3.0, outlier_fraction=0.05, outlier_magnitude=0.5,
+    ),
+}
+"""Settings of each profile that differ from the defaults (``exact`` is the defaults)."""
+
+
+def apply_sim_profile(sim: SimulatorConfig, profile: str) -> SimulatorConfig:
+    """Set every error magnitude of ``sim`` to ``profile``'s value (in place; returns ``sim``).
+
+    Settings the profile does not name get their default, so applying a profile undoes any earlier
+    setting: apply it first, then explicit settings. ``seed``, ``normalize_scale`` and
+    ``distort_first_submap`` are left alone.
+    """
+    if not isinstance(profile, str) or profile not in SIM_PROFILES:
+        raise UserError(f"unknown simulator profile {profile!r} (--sim-profile / [sim] profile); use one of "
+                        f"{', '.join(SIM_PROFILES)}")
+    defaults = SimulatorConfig()
+    for name in _PROFILED:
+        setattr(sim, name, SIM_PROFILE_VALUES[profile].get(name, getattr(defaults, name)))
+    sim.profile = profile
+    return sim
 
 
 @dataclass
@@ -574,6 +723,89 @@ class OutputConfig(Section):
 
 
 @dataclass
+class UpgradeConfig(Section):
+    """Projective-to-metric upgrade of the finished map (``sl4slam.upgrade``): self-calibration
+    through the absolute dual quadric (Hartley & Zisserman, Multiple View Geometry, 2nd ed., ch. 19,
+    "H&Z") from zero skew, square pixels, a known principal point and one focal length.
+
+    Residuals are unitless: skew / f, fy / fx - 1, principal-point offset / f (and, for the focal
+    model, log focal ratios), so 0.01 reads "a hundredth of the focal length"."""
+
+    section: ClassVar[str] = "upgrade"
+    flag_prefix: ClassVar[str] = "upgrade-"
+    flag_names: ClassVar[dict[str, str]] = {"mode": "--metric-upgrade"}
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {
+        "mode": ("on", "off"),
+        "focal_model": ("shared", "varying"),
+        "loss": ("cauchy", "soft_l1", "huber", "arctan", "linear"),
+    }
+    advanced: ClassVar[frozenset[str]] = frozenset({
+        "focal_weight", "loss", "loss_scale", "outlier_factor", "min_inlier_fraction", "min_keyframes",
+        "min_condition", "max_uncertainty", "max_iterations", "max_residual_ratio"})
+
+    mode: str = "on"
+    """"on": estimate the upgrade at the end of a run and apply it to every node, pose and map point
+    when it is well conditioned and clearly better (benchmarks/results/upgrade.md: it never made a
+    run worse); "off": leave the map in the first submap's projective frame."""
+    focal_model: str = "shared"
+    """"shared": one focal length for every keyframe (one physical camera films the video; the
+    strongest constraint, with the fewest critical motions: Sturm, CVPR 1997, vs. varying focal,
+    Sturm, ICCV 1999). "varying": each keyframe's focal free (a zoom, or a frontend whose focal
+    wanders); no smoothness prior, which would bias a real zoom: the four other constraints per
+    camera determine the focal (H&Z 19.3)."""
+    focal_weight: float = 1.0
+    """Shared model: weight of the focal residual log(f_i / f) against the skew / aspect /
+    principal-point residuals; 1: a focal deviation of 0.01 (relative) counts like a principal
+    point 0.01 focal lengths off (our choice: the constraints are of like accuracy)."""
+    loss: str = "cauchy"
+    """Robust loss of the refinement (scipy.optimize.least_squares): "cauchy", "soft_l1", "huber",
+    "arctan" or "linear" (none). Our measurement (benchmarks/results/upgrade.md): with 0.1 to 0.4
+    of the cameras broken, only "cauchy" was applied every time (at the noise floor); "linear" failed."""
+    loss_scale: float = 0.01
+    """Residual (unitless) beyond which the robust loss down-weights, the noise expected of a good
+    camera. Our measurement on simulated pipeline runs: the kept keyframes fit to an RMS of
+    0.0004-0.008 after the upgrade (benchmarks/results/upgrade.md)."""
+    outlier_factor: float = 3.0
+    """After the robust fit a camera is kept when its residual (RMS of its constraints) is below
+    this many ``loss_scale``s; 3: the usual 3-sigma rule with ``loss_scale`` as the noise."""
+    min_inlier_fraction: float = 0.5
+    """Skip when fewer cameras than this fraction are kept: most keyframes must agree (our choice)."""
+    min_keyframes: int = 3
+    """Fewest keyframes: the linear absolute-dual-quadric estimate with a known principal point,
+    zero skew and unit aspect ratio needs 3 views (H&Z 19.3)."""
+    min_condition: float = 1e-3
+    """Skip when the refinement's Jacobian at the solution has smallest / largest singular value
+    below this (plane at infinity in units of the scene depth): pure rotation, pure translation and
+    other critical motions (H&Z 19.9) leave a direction undetermined. Our measurement: hand-held
+    paths >= 0.02, degenerate motions <= 1e-4 with 0.003 noise (benchmarks/results/upgrade.md)."""
+    max_uncertainty: float = 0.01
+    """Skip when the predicted standard deviation of the upgrade (plane at infinity in units of the
+    scene depth, calibration in units of the focal; from the residuals and the Jacobian) is above
+    this, i.e. a distortion of the map by a hundredth: near-degenerate motion with noisy cameras,
+    e.g. a rotation with a baseline of a hundredth of the scene depth. Our measurement: hand-held
+    paths and pipeline runs 2e-4 to 7e-3 (benchmarks/results/upgrade.md)."""
+    max_iterations: int = 100
+    """Most residual evaluations of each robust refinement (scipy's ``max_nfev``); our tests and
+    pipeline runs converge within 75, degenerate motions wander until this cap."""
+    max_residual_ratio: float = 0.8
+    """Never make it worse: apply only when the constraint residual after the upgrade is below
+    this fraction of the one before (on the kept cameras), so an already metric map (the residual
+    is noise) is left untouched (our choice)."""
+
+    def validate(self) -> None:
+        super().validate()
+        self._require("focal_weight", self.focal_weight > 0, "> 0")
+        self._require("loss_scale", self.loss_scale > 0, "> 0")
+        self._require("outlier_factor", self.outlier_factor >= 1, ">= 1")
+        self._require("min_inlier_fraction", 0 < self.min_inlier_fraction <= 1, "in (0, 1]")
+        self._require("min_keyframes", self.min_keyframes >= 3, "at least 3 (H&Z 19.3)")
+        self._require("min_condition", 0 <= self.min_condition < 1, "in [0, 1)")
+        self._require("max_uncertainty", self.max_uncertainty > 0, "> 0")
+        self._require("max_iterations", self.max_iterations >= 1, "at least 1")
+        self._require("max_residual_ratio", 0 < self.max_residual_ratio <= 1, "in (0, 1]")
+
+
+@dataclass
 class SLAMConfig(Section):
     """Everything a run needs."""
 
@@ -599,6 +831,7 @@ class SLAMConfig(Section):
     sim: SimulatorConfig = field(default_factory=SimulatorConfig)
     vggt: VGGTConfig = field(default_factory=VGGTConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    upgrade: UpgradeConfig = field(default_factory=UpgradeConfig)
 
     def validate(self) -> None:
         """Check every section, then the settings that depend on each other."""
@@ -662,14 +895,26 @@ def _apply(target: Any, values: dict, where: str) -> None:
 
 
 def config_from_dict(values: dict, base: SLAMConfig | None = None) -> SLAMConfig:
-    """Overlay ``values`` (nested dict) on ``base`` (default: the defaults)."""
+    """Overlay ``values`` (nested dict) on ``base`` (default: the defaults).
+
+    A ``profile`` key of the ``sim`` table is applied before the table's other keys, whatever
+    their order, so explicit simulator settings override the profile's.
+    """
     config = base if base is not None else SLAMConfig()
+    sim_values = values.get("sim")
+    if isinstance(sim_values, dict) and "profile" in sim_values:
+        apply_sim_profile(config.sim, sim_values["profile"])
     _apply(config, values, "")
     return config
 
 
 def load_config(path: str | Path, base: SLAMConfig | None = None) -> SLAMConfig:
     """Read a TOML (``.toml``) or JSON file of settings over the defaults."""
+    return config_from_dict(read_config_file(path), base)
+
+
+def read_config_file(path: str | Path) -> dict:
+    """The nested dict of settings in a TOML (``.toml``) or JSON file."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"config file not found: {path}")
@@ -684,4 +929,6 @@ def load_config(path: str | Path, base: SLAMConfig | None = None) -> SLAMConfig:
             values = json.loads(path.read_text())
     except (ValueError, UnicodeDecodeError) as exc:
         raise UserError(f"cannot parse config file {path}: {exc}") from None
-    return config_from_dict(values, base)
+    if not isinstance(values, dict):
+        raise UserError(f"config file {path} must hold a table/object of settings")
+    return values

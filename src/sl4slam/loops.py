@@ -13,10 +13,12 @@ reason the run summary lists:
    from the true overlap, ``sl4slam.frontend.overlap``); below ``min_match_ratio`` the images are
    taken not to overlap. A frontend that gave no score (a replayed cache recorded without the check)
    skips this check, which the decision's figures show by the missing ``match_ratio``.
-1. **Alignment.** The loop frame's two reconstructions must align with the model the graph uses,
-   without a fallback, keeping ``LoopConfig.min_inlier_ratio`` of the points (or half the
-   odometry's median, when the model fits consecutive submaps worse than that), and pass the same
-   edge checks as odometry (finite, orientation-preserving, conditioned).
+1. **Alignment.** The loop frame's two reconstructions must align with the model the graph uses
+   (a constrained model of that group for a degenerate frame, never a weaker stand-in), a point fit
+   keeping ``LoopConfig.min_inlier_ratio`` of the points (or half the odometry's median, when the
+   model fits consecutive submaps worse than that), and pass the same edge checks as odometry
+   (finite, orientation-preserving, conditioned). A link from the frame's cameras (no point fit) is
+   judged by the view and graph checks alone.
 2. **Views** (:func:`view_agreement`). Inside the new submap, the loop frame's confident points are
    projected into the query keyframe: enough of them must land in its image in front of the camera
    (overlap), agree with its own depth (consistency), and the two images must look alike there
@@ -40,7 +42,7 @@ import numpy as np
 
 from .backend import Backend
 from .config import AlignmentConfig, LoopConfig
-from .edges import edge_problem
+from .edges import edge_problem, is_camera_link
 from .types import Aligner, Alignment, FrameView
 
 BLUR_FRACTION = 0.01
@@ -216,10 +218,11 @@ class LoopVerifier:
             return LoopDecision(False, f"the loop frame's alignment failed: {exc}", checks=checks)
         checks["inlier_ratio"] = alignment.inlier_ratio
         gate = self.inlier_gate(odometry_ratios)
+        camera_link = is_camera_link(alignment)
         problem = edge_problem(alignment, self.alignment_config)
-        if alignment.fallback:
-            problem = f"the loop frame's alignment needed a fallback ({alignment.fallback})"
-        elif problem is None and alignment.inlier_ratio < gate:
+        if alignment.model != self.aligner.group:
+            problem = f"the loop frame's alignment fell back to a weaker model ({alignment.fallback})"
+        elif problem is None and not camera_link and alignment.inlier_ratio < gate:
             problem = f"inlier ratio {alignment.inlier_ratio:.2f} < {gate:.2f}"
         if problem:
             return LoopDecision(False, problem, alignment, checks=checks)

@@ -228,6 +228,7 @@ def summarize(result: SLAMResult, config_dict: dict, ate_result: ATEResult | Non
                     "final_optimization": stats.get("seconds_final_optimization", 0.0)},
         "memory": {**peak_memory(), "stored_keyframe_bytes": stats.get("stored_bytes", 0),
                    "stored_bytes_per_keyframe": round(stats.get("stored_bytes", 0) / max(1, len(result.keyframes)))},
+        "metric_upgrade": stats.get("metric_upgrade", []),
         "config": config_dict,
     }
     if ate_result is not None:

@@ -518,15 +518,53 @@ class SLAMPipeline:
     # ------------------------------------------------------------------ results
     def result(self) -> SLAMResult:
         """Poses and intrinsics of every stored keyframe under the polished graph estimate
-        (``final_estimates``: a batch polish of the whole graph, O(submaps), so call it at the end)."""
+        (``final_estimates``: a batch polish of the whole graph, O(submaps), so call it at the end),
+        upgraded to a metric frame when ``config.upgrade`` allows (``sl4slam.upgrade``)."""
         start = time.perf_counter()
-        result = self._result(self.backend.world_estimate(final=True))
-        result.stats["seconds_final_optimization"] = round(time.perf_counter() - start, 5)
+        world = self.backend.world_estimate(final=True)
+        optimized = time.perf_counter()
+        world, upgrades = self.metric_upgrade(world)
+        result = self._result(world)
+        result.stats["seconds_final_optimization"] = round(optimized - start, 5)
+        result.stats["metric_upgrade"] = upgrades
         return result
 
-    def snapshot(self) -> SLAMResult:
-        """The result under iSAM2's current estimate (no polish): for checkpoints and live viewers."""
-        return self._result(self.backend.world_estimate())
+    def snapshot(self, metric_upgrade: bool = False) -> SLAMResult:
+        """The result under iSAM2's current estimate (no polish): for checkpoints and live viewers;
+        ``metric_upgrade`` also upgrades it (about 0.1 s for 500 keyframes)."""
+        world = self.backend.world_estimate()
+        if metric_upgrade:
+            world, _ = self.metric_upgrade(world)
+        return self._result(world)
+
+    def metric_upgrade(self, world: WorldEstimate) -> tuple[WorldEstimate, list[dict]]:
+        """Upgrade each map segment to a metric frame (one ``H_metric_world`` per segment, applied to
+        its submaps' and keyframes' transforms: every pose and map point follows). Returns the
+        upgraded estimate and one summary per segment."""
+        from .upgrade import estimate_metric_upgrade
+
+        H_world_submap, H_world_keyframe = world.H_world_submap, world.H_world_keyframe
+        keyframes = [k for k in self.keyframes if k.submap_id in H_world_submap]
+        if not keyframes:
+            return world, []
+        starts = self.backend.segments
+        segment_of = np.searchsorted(starts, [k.submap_id for k in keyframes], side="right") - 1
+        upgraded, summaries = WorldEstimate(dict(H_world_submap), dict(H_world_keyframe)), []
+        for segment in np.unique(segment_of):
+            members = [k for k, s in zip(keyframes, segment_of) if s == segment]
+            P = world_cameras(members, H_world_submap, H_world_keyframe)
+            upgrade = estimate_metric_upgrade(P, np.stack([k.principal_point for k in members]), self.config.upgrade,
+                                              image_sizes=np.array([k.shape[::-1] for k in members]))
+            summaries.append({"segment": int(segment), **upgrade.summary()})
+            if upgrade.applied:
+                for submap_id in {k.submap_id for k in members}:
+                    upgraded.H_world_submap[submap_id] = upgrade.H_metric_world @ H_world_submap[submap_id]
+                for keyframe in members:
+                    if keyframe.frame_index in H_world_keyframe:
+                        upgraded.H_world_keyframe[keyframe.frame_index] = (
+                            upgrade.H_metric_world @ H_world_keyframe[keyframe.frame_index])
+            log.info("metric upgrade of segment %d: %s", segment, upgrade.reason)
+        return upgraded, summaries
 
     def _result(self, world: WorldEstimate) -> SLAMResult:
         H_world_submap = world.H_world_submap

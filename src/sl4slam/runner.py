@@ -14,6 +14,7 @@ submaps hold. A frontend that keeps failing ends the run the same way, with its 
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import signal
 import sys
@@ -69,8 +70,13 @@ def prepare_output(out_dir: str | Path, overwrite: bool = False, keep: str | Pat
 
 def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig, replay_dir: str | None = None,
              progress: bool = True, overwrite: bool = False,
-             on_submap: Callable | None = None) -> dict:
+             on_submap: Callable | None = None, view=None, all_frames: bool = False, keep_viewer: bool = False) -> dict:
     """Open ``source_path``, run the pipeline, write every output into ``out_dir``; return the summary.
+
+    ``view``: ``sl4slam.viewer.ViewerSettings`` to watch the run in the browser (kept open after
+    the run until Ctrl-C when ``keep_viewer``). ``all_frames``: also localize every other frame
+    (``trajectory_all.txt``, see ``sl4slam.localize``). ``source_path`` may be a camera index or a
+    stream URL (``sl4slam.io.live``).
 
     Raises:
         UserError: bad settings, output folder, source, or weights (before any frame is read).
@@ -78,11 +84,29 @@ def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig, r
             are written first.
     """
     config.validate()  # the cheap checks first, without loading any model code
+    if view is not None:
+        from .viewer.app import require_viser
+
+        require_viser()
     out = prepare_output(out_dir, overwrite, keep=replay_dir)
-    from .frontend import frontend_requires_ground_truth
     from .io import open_source
 
     source = open_source(str(source_path), stride=config.stride, max_frames=config.max_frames)
+    live = bool(getattr(source, "live", False))
+    try:
+        return _run(source, live, out, config, replay_dir, progress, on_submap, view, all_frames, keep_viewer)
+    finally:
+        if live:
+            source.close()  # stops the reader thread, removes the kept frames
+
+
+def _run(source, live: bool, out: Path, config: SLAMConfig, replay_dir, progress: bool, on_submap, view,
+         all_frames: bool, keep_viewer: bool) -> dict:
+    from .frontend import frontend_requires_ground_truth
+
+    if all_frames and live:
+        raise UserError("--all-frames needs a re-readable source (a video file or a folder): a live source keeps "
+                        "only its keyframes; record the stream to a file first")
     if len(source) < 2:
         raise UserError(f"{source.name}: {len(source)} frame(s) found; SLAM needs at least 2 frames")
     if frontend_requires_ground_truth(config, replay_dir) and not source.has_ground_truth:
@@ -96,7 +120,7 @@ def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig, r
         resolve_weights(config.vggt.weights)  # missing weights: one line now, not after reading frames
 
     from .frontend import make_frontend
-    from .outputs import write_checkpoint, write_outputs
+    from .outputs import atomic_write_bytes, write_checkpoint, write_outputs
     from .pipeline import FrontendFailedError, SLAMPipeline
     from .retrieval import make_retrieval
 
@@ -109,19 +133,29 @@ def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig, r
     run_config = dataclasses.replace(config, stride=1, max_frames=0)
     last_write = [time.perf_counter()]
 
+    viewer = None
+    if view is not None:
+        from .viewer import LiveViewer
+
+        viewer = LiveViewer(view)
+    callbacks = [c for c in (on_submap, viewer.on_submap if viewer else None, _live_status(source) if live else None) if c]
+
     def checkpoint(pipeline: SLAMPipeline, submap_id: int) -> None:
-        if on_submap is not None:
-            on_submap(pipeline, submap_id)
+        for callback in callbacks:
+            callback(pipeline, submap_id)
         if time.perf_counter() - last_write[0] >= config.output.checkpoint_seconds:
             write_checkpoint(pipeline.snapshot(), out, config, {"source": source.name})
             last_write[0] = time.perf_counter()
 
     pipeline = SLAMPipeline(run_config, frontend=frontend, retrieval=retrieval, on_submap=checkpoint)
+    if live:
+        # the source keeps exactly the frames the pipeline selected as keyframes (loop closures re-read them)
+        source.keyframe_counter = lambda: pipeline.selector.num_keyframes
     status, stop_reason = "complete", None
     start = time.perf_counter()
     with _stop_on_signals(pipeline):
         try:
-            pipeline.consume(source, progress=progress)
+            pipeline.consume(source, progress=progress and not live)
         except FrontendFailedError as exc:
             status, stop_reason = "failed", str(exc)
         except KeyboardInterrupt:
@@ -134,12 +168,56 @@ def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig, r
                              exit_code)
     result = pipeline.result()
     result.stats["seconds_total"] = time.perf_counter() - start
+    extra = {"stop_reason": stop_reason} if stop_reason else {}
+    if live:
+        extra["live"] = {"delivered": source.delivered, "dropped": source.dropped, "fps": source.fps}
     summary = write_outputs(result, out, config, source_name=source.name, skipped=source.skipped, status=status,
-                            extra={"stop_reason": stop_reason} if stop_reason else None)
+                            extra=extra or None)
+    if all_frames and status == "complete":
+        summary["all_frames"] = _localize_all_frames(source, result, frontend, out, progress)
+        atomic_write_bytes(out / "summary.json", json.dumps(summary, indent=2).encode())
     print_summary(summary, out, stream=sys.stdout)
+    if viewer is not None:
+        viewer.finish(result, summary)
+        if keep_viewer:
+            print(f"viewer stays open at http://{view.host}:{viewer.viewer.port}; Ctrl-C to close", flush=True)
+            _wait_for_interrupt()
+        viewer.close()
     if status != "complete":
         raise RunInterrupted(f"{stop_reason}; partial results written to {out}", exit_code)
     return summary
+
+
+def _live_status(source):
+    """A per-submap status line for live runs (the frame count is open-ended, so no progress bar)."""
+    def on_submap(pipeline, submap_id: int) -> None:
+        print(f"submap {submap_id}: {source.delivered} frames ({source.dropped} dropped), "
+              f"{len(pipeline.keyframes)} keyframes, {pipeline.num_loops} loops", flush=True)
+
+    return on_submap
+
+
+def _localize_all_frames(source, result, frontend, out_dir: Path, progress: bool) -> dict:
+    """Poses of every frame into ``trajectory_all.txt``; returns the summary entry."""
+    from .io import write_tum_trajectory
+    from .localize import localize_frames, split_ate, views_from_pipeline
+
+    poses = localize_frames(source, views_from_pipeline(result), to_grid=frontend.grid_colors, progress=progress)
+    write_tum_trajectory(out_dir / "trajectory_all.txt", poses.timestamps, poses.T_world_cam)
+    entry = poses.summary()
+    if poses.T_world_cam_gt is not None and len(poses.timestamps) >= 3:
+        split = split_ate(poses)
+        entry["ate"] = {"rmse": split.all, "keyframes": split.keyframes, "non_keyframes": split.non_keyframes,
+                        "metric": "one Sim(3) alignment of all posed frames, RMSE per kind"}
+    return entry
+
+
+def _wait_for_interrupt() -> None:
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
 
 
 class _stop_on_signals:
@@ -190,6 +268,19 @@ def print_summary(summary: dict, out_dir: Path, stream=sys.stdout) -> None:
         dropped["unreadable"] = skipped
     if dropped:
         print("dropped frames: " + ", ".join(f"{v} {k}" for k, v in dropped.items()) + " (see summary.json)", file=stream)
+    for upgrade in summary.get("metric_upgrade", []):
+        state = (f"applied, focal {upgrade['focal_px']:.1f} px, constraint residual {upgrade['residual_before']:.3g} -> "
+                 f"{upgrade['residual_after']:.3g}") if upgrade["applied"] else f"skipped: {upgrade['reason']}"
+        print(f"metric upgrade{' of segment ' + str(upgrade['segment']) if upgrade['segment'] else ''}: {state}", file=stream)
     if "ate" in summary:
         print(f"ATE RMSE {summary['ate']['rmse']:.4f} m (Sim(3)-aligned, {summary['ate']['poses']} keyframes)", file=stream)
+    if "live" in summary:
+        print(f"live: {summary['live']['delivered']} frames processed, {summary['live']['dropped']} dropped", file=stream)
+    if "all_frames" in summary:
+        info = summary["all_frames"]
+        line = (f"all frames: {info['localized']} localized ({info['ms_per_frame_median']:.1f} ms each), "
+                f"{len(info['failed'])} failed (listed in summary.json); trajectory_all.txt")
+        if "ate" in info:
+            line += f"; ATE RMSE {info['ate']['non_keyframes']:.4f} non-keyframes, {info['ate']['keyframes']:.4f} keyframes"
+        print(line, file=stream)
     print(f"outputs in {out_dir}", file=stream)

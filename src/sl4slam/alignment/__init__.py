@@ -7,14 +7,12 @@
 - :func:`estimate_sim3`: 7-DOF similarity by 3-point Umeyama in RANSAC.
 - :func:`sim3_from_shared_frame`: similarity from the shared frame's two extrinsics and the
   median depth ratio of its points.
-- :func:`calibration_from_shared_frame`: VGGT-SLAM 2.0's calibration-and-scale link as an SL(4) map.
 - :func:`camera_constrained_sl4`: projective fit constrained by the shared frame's cameras, for
   planar scenes where the 15-DOF point fit is degenerate.
 - :func:`dlt_sl4` / :func:`minimal_sl4_batch`: the least-squares and batched minimal DLT solvers.
 """
 
 from .aligner import CalibrationAligner, SL4Aligner, Sim3CameraAligner, Sim3PointAligner, make_aligner, shared_pixels
-from .calibration import calibration_from_shared_frame, calibration_link, calibration_scale
 from .camera_constrained import camera_constrained_sl4
 from .dlt import dlt_design_matrix, dlt_sl4, minimal_sl4_batch, normalize_points
 from .ransac import estimate_sim3, estimate_sl4
@@ -23,9 +21,7 @@ from .sim3 import sim3_from_shared_frame
 __all__ = [
     "CalibrationAligner",
     "SL4Aligner",
-    "calibration_from_shared_frame",
-    "calibration_link",
-    "calibration_scale",
+
     "Sim3CameraAligner",
     "Sim3PointAligner",
     "make_aligner",

@@ -12,7 +12,7 @@ each), keeps the pixels confident in both (an evenly strided subset beyond
 - :class:`Sim3CameraAligner` (``"sim3-cameras"``): the shared frame's two cameras and the median
   ratio of its depths (no point fit);
 - :class:`CalibrationAligner` (``"calibration"``, VGGT-SLAM 2.0): the shared frame's two cameras with
-  their intrinsics and the median depth ratio, as an SL(4) map (no point fit).
+  their intrinsics and the median depth ratio, as an SL(4) map, for every frame (no point fit).
 
 Any of them offers :meth:`~sl4slam.types.Aligner.camera_edge`, the camera-and-depth measurement
 the pipeline falls back to when a fit fails (with an inflated sigma).
@@ -26,10 +26,9 @@ import numpy as np
 
 from ..config import AlignmentConfig, SLAMConfig, alignment_model
 from ..types import Aligner, Alignment, FrameView
-from .calibration import calibration_from_shared_frame
 from .camera_constrained import camera_constrained_sl4
-from .ransac import estimate_sim3, estimate_sl4
-from .sim3 import sim3_from_shared_frame
+from .ransac import estimate_sim3, estimate_sl4, relief
+from .sim3 import calibration_scale_link, sim3_from_shared_frame
 
 
 def shared_pixels(view_a: FrameView, view_b: FrameView, limit: int) -> np.ndarray:
@@ -68,37 +67,88 @@ class PointAligner(Aligner):
     def camera_edge(self, view_a: FrameView, view_b: FrameView) -> Alignment:
         """Sim(3) from the frame's two cameras; its depth ratio from the shared confident pixels, or
         from every pixel when fewer than ``min_points`` are confident in both."""
+        X_a, X_b = self._scale_pairs(view_a, view_b)
+        edge = sim3_from_shared_frame(view_a.T_cam_submap, view_b.T_cam_submap, X_a, X_b,
+                                      self.config.inlier_threshold)
+        edge.extras["camera_edge"] = True
+        return edge
+
+    def _scale_pairs(self, view_a: FrameView, view_b: FrameView) -> tuple[np.ndarray, np.ndarray]:
+        """Point pairs that vote on a camera link's scale: the shared confident pixels, or every
+        pixel when fewer than ``min_points`` are confident in both."""
         limit = int(self.config.max_correspondences)
         pixels = shared_pixels(view_a, view_b, limit)
         if len(pixels) < self.config.min_points:  # no confident overlap: every pixel votes on the scale
             everywhere = np.ones_like(view_a.mask)
             pixels = shared_pixels(FrameView(view_a.points, everywhere, view_a.K, view_a.T_cam_submap),
                                    FrameView(view_b.points, everywhere, view_b.K, view_b.T_cam_submap), limit)
-        X_a = view_a.points.reshape(-1, 3)[pixels]
-        X_b = view_b.points.reshape(-1, 3)[pixels]
-        edge = sim3_from_shared_frame(view_a.T_cam_submap, view_b.T_cam_submap, X_a, X_b,
-                                      self.config.inlier_threshold)
-        edge.extras["camera_edge"] = True
-        return edge
+        return view_a.points.reshape(-1, 3)[pixels], view_b.points.reshape(-1, 3)[pixels]
 
 
 class SL4Aligner(PointAligner):
-    """15-DOF projective alignment (paper 4.2) with the camera-constrained fit for degenerate scenes."""
+    """15-DOF projective alignment (paper 4.2), with constrained models where the points cannot
+    determine it.
+
+    The 15-DOF fit needs three-dimensional structure well beyond the model's depth errors: a frame
+    whose points are nearly coplanar (``planarity < planarity_threshold``) or whose relief off its
+    best plane is small against its depth (``relief < min_relief``: a warped floor looks 3-D to
+    the planarity test, and RANSAC then turns the warp into a projective error) is degenerate, and
+    ``planar_model`` measures it instead: the calibration-and-scale link of the frame's two cameras
+    (:func:`calibration_scale_link`), or the camera-constrained projective fit. On nearly planar
+    frames (``planarity < near_planar_threshold``) the camera-constrained fit competes with RANSAC,
+    which may settle on the dominant plane. Every such choice is reported as a fallback.
+    """
 
     model = "sl4"
     group = "sl4"
 
+    def camera_edge(self, view_a: FrameView, view_b: FrameView) -> Alignment:
+        """The calibration-and-scale link of the frame's two cameras (no point fit)."""
+        X_a, X_b = self._scale_pairs(view_a, view_b)
+        edge = calibration_scale_link(view_a.K, view_a.T_cam_submap, view_b.K, view_b.T_cam_submap, X_a, X_b,
+                                      self.config.inlier_threshold)
+        edge.extras["camera_edge"] = True
+        return edge
+
     def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
-        alignment = estimate_sl4(X_a, X_b, self.config, seed=seed)
-        if alignment.fallback is None:
+        cfg = self.config
+        centre_b = -view_b.T_cam_submap[:3, :3].T @ view_b.T_cam_submap[:3, 3]
+        low = relief(X_b, centre_b, cfg.max_points)
+        if low < cfg.min_relief:
+            return self._degenerate(X_a, X_b, view_a, view_b, seed,
+                                    f"shared frame nearly flat against its depth errors (relief {low:.3g} < {cfg.min_relief})")
+        alignment = estimate_sl4(X_a, X_b, cfg, seed=seed)
+        if alignment.fallback is not None:
+            return self._degenerate(X_a, X_b, view_a, view_b, seed, alignment.fallback, alignment)
+        flatness = alignment.extras.get("planarity", 1.0)
+        if flatness >= cfg.near_planar_threshold:
             return alignment
-        # Degenerate 15-DOF fit (e.g. a planar shared frame): the frame's two cameras supply the
-        # constraints the points lack; keep it when it explains at least as many points.
-        constrained = camera_constrained_sl4(X_a, X_b, view_a.camera, view_b.camera, alignment.H, self.config)
-        if constrained is not None and constrained.inlier_ratio >= alignment.inlier_ratio:
-            constrained.fallback = f"{alignment.fallback}; used the camera-constrained projective fit"
+        # RANSAC may have settled on the dominant plane and called the rest outliers: the frame's
+        # cameras constrain what the plane leaves free; keep that fit when it explains more points.
+        constrained = camera_constrained_sl4(X_a, X_b, view_a.camera, view_b.camera, alignment.H, cfg)
+        if constrained is not None and constrained.num_inliers > alignment.num_inliers:
+            constrained.fallback = (f"nearly planar shared frame (planarity {flatness:.3g}): the camera-constrained fit "
+                                    f"explains more points ({constrained.inlier_ratio:.3f} vs {alignment.inlier_ratio:.3f})")
             return constrained
         return alignment
+
+    def _degenerate(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int, why: str,
+                    stand_in: Alignment | None = None) -> Alignment:
+        """The ``planar_model`` measurement of a degenerate frame (``why`` says what made it so)."""
+        if self.config.planar_model == "calibration-scale":
+            link = self.camera_edge(view_a, view_b)
+            link.fallback = f"{why}; used the calibration-and-scale link of the frame's cameras"
+            return link
+        guess = stand_in.H if stand_in is not None else estimate_sim3(X_a, X_b, self.config, seed=seed).H
+        constrained = camera_constrained_sl4(X_a, X_b, view_a.camera, view_b.camera, guess, self.config)
+        if constrained is not None and (stand_in is None or constrained.inlier_ratio >= stand_in.inlier_ratio):
+            constrained.fallback = f"{why}; used the camera-constrained projective fit"
+            return constrained
+        if stand_in is not None:
+            return stand_in
+        link = self.camera_edge(view_a, view_b)
+        link.fallback = f"{why}; used the calibration-and-scale link of the frame's cameras"
+        return link
 
 
 class Sim3PointAligner(PointAligner):
@@ -121,14 +171,15 @@ class Sim3CameraAligner(PointAligner):
         return sim3_from_shared_frame(view_a.T_cam_submap, view_b.T_cam_submap, X_a, X_b, self.config.inlier_threshold)
 
 
-class CalibrationAligner(PointAligner):
-    """The shared frame's calibration-and-scale link (VGGT-SLAM 2.0; ``sl4slam.alignment.calibration``)."""
+class CalibrationAligner(SL4Aligner):
+    """The shared frame's calibration-and-scale link for every edge (VGGT-SLAM 2.0): its two cameras,
+    their intrinsics and the median depth ratio (:func:`calibration_scale_link`), never a point fit."""
 
     model = "calibration"
-    group = "sl4"
 
     def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
-        return calibration_from_shared_frame(view_a, view_b, X_a, X_b, self.config.inlier_threshold)
+        return calibration_scale_link(view_a.K, view_a.T_cam_submap, view_b.K, view_b.T_cam_submap, X_a, X_b,
+                                      self.config.inlier_threshold)
 
 
 ALIGNERS: dict[str, type[PointAligner]] = {

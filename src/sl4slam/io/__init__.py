@@ -6,6 +6,8 @@
 - a folder with ``rgb.txt`` (or that ``rgb.txt`` itself)  -> :class:`TumSource`
 - a folder with ``frame-XXXXXX.color.*`` files            -> :class:`SevenScenesSource`
 - any other folder                                        -> :class:`ImageFolderSource`
+- a camera index (``0``) or a stream URL (rtsp://, http://) -> :class:`LiveSource` (frames as
+  they arrive; see ``sl4slam.io.live``)
 
 Every source yields :class:`sl4slam.types.Frame` records lazily (images are decoded when
 iterated or fetched with ``get``) and lists unreadable inputs in ``skipped``.
@@ -18,6 +20,7 @@ from pathlib import Path
 from sl4slam.errors import UserError
 from sl4slam.io._common import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, natural_key, read_depth, read_rgb
 from sl4slam.io.image_folder import ImageFolderSource
+from sl4slam.io.live import LiveSource, is_live_spec
 from sl4slam.io.memory import ListSource
 from sl4slam.io.seven_scenes import SevenScenesSource, is_seven_scenes_folder
 from sl4slam.io.tum import (
@@ -38,6 +41,7 @@ __all__ = [
     "TumSource",
     "SevenScenesSource",
     "ListSource",
+    "LiveSource",
     "read_tum_trajectory",
     "write_tum_trajectory",
     "tum_intrinsics",
@@ -48,7 +52,7 @@ __all__ = [
     "TUM_DEPTH_SCALE",
 ]
 
-_KINDS = "an image folder, a video file, or a TUM RGB-D / 7-Scenes sequence folder"
+_KINDS = "an image folder, a video file, a TUM RGB-D / 7-Scenes sequence folder, a camera index or a stream URL"
 
 
 def open_source(path: str | Path, stride: int = 1, max_frames: int = 0) -> FrameSource:
@@ -63,6 +67,8 @@ def open_source(path: str | Path, stride: int = 1, max_frames: int = 0) -> Frame
     Raises:
         UserError: the path does not exist, is an unsupported file, or holds no readable frames.
     """
+    if is_live_spec(str(path)) and not Path(path).exists():
+        return LiveSource(str(path), max_frames=max_frames, stride=stride)
     path = Path(path).expanduser()
     if not path.exists():
         raise UserError(f"input {path} does not exist; pass {_KINDS}")

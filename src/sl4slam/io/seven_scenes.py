@@ -3,7 +3,10 @@
 Colour is ``.color.png`` (or ``.jpg``), depth ``.depth.png`` in millimetres with 65535 = invalid,
 pose ``.pose.txt`` a 4x4 camera-to-world matrix whose rotation is not exactly orthonormal (it is
 projected to SO(3) here). The Kinect recorded at 30 Hz; the published intrinsics are
-fx = fy = 585, cx = 320, cy = 240 (640x480).
+fx = fy = 585, cx = 320, cy = 240 at 640x480. Images of another size (a resized copy, or the
+synthetic 7-Scenes-style sequences of ``sl4slam synth --layout 7scenes``) get those intrinsics
+scaled to their size (:func:`seven_scenes_intrinsics`), as the reference evaluations of
+VGGT-SLAM and MASt3R-SLAM scale them to their model's resolution.
 """
 
 from __future__ import annotations
@@ -19,10 +22,24 @@ from sl4slam.io._common import IndexedSource, logger, read_depth, read_rgb, sele
 from sl4slam.types import Frame
 
 SEVEN_SCENES_K = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]])
+SEVEN_SCENES_SIZE = (640, 480)
+"""(width, height) at which ``SEVEN_SCENES_K`` holds."""
 SEVEN_SCENES_FPS = 30.0
 SEVEN_SCENES_INVALID_DEPTH = 65535
 
 _COLOR = re.compile(r"^frame-(\d+)\.color\.(png|jpg|jpeg)$", re.IGNORECASE)
+
+
+def seven_scenes_intrinsics(width: int, height: int) -> np.ndarray:
+    """``(3, 3)`` published intrinsics scaled from 640x480 to ``width`` x ``height`` px.
+
+    Each axis scales by its own ratio (``fx * width / 640``, ``cx * width / 640``, likewise
+    ``fy``, ``cy`` with the height), the convention of the reference 7-Scenes evaluations.
+    """
+    K = SEVEN_SCENES_K.copy()
+    K[0] *= float(width) / SEVEN_SCENES_SIZE[0]
+    K[1] *= float(height) / SEVEN_SCENES_SIZE[1]
+    return K
 
 
 def is_seven_scenes_folder(folder: Path) -> bool:
@@ -49,13 +66,14 @@ class SevenScenesSource(IndexedSource):
 
     ``Frame.timestamp`` is the frame number / 30 Hz; ``depth`` is in metres (0 = invalid);
     ``T_world_cam`` the projected pose (``None`` if its file is missing or unreadable);
-    ``K`` the published 585 px intrinsics unless ``K`` is given.
+    ``K`` the published 585 px intrinsics scaled to the image's size
+    (:func:`seven_scenes_intrinsics`) unless ``K`` is given.
 
     Args:
         folder: the sequence folder.
         stride: keep every ``stride``-th frame.
         max_frames: keep at most this many frames (0 = all).
-        K: override the intrinsics.
+        K: override the intrinsics (used as given, whatever the image size).
     """
 
     def __init__(self, folder: str | Path, stride: int = 1, max_frames: int = 0, K: np.ndarray | None = None):
@@ -73,7 +91,7 @@ class SevenScenesSource(IndexedSource):
         self.name = folder.resolve().name
         self.skipped: list[str] = []
         self.has_ground_truth = True  # every frame has depth and a pose file (unreadable ones are dropped)
-        self.K = SEVEN_SCENES_K.copy() if K is None else np.asarray(K, np.float64).reshape(3, 3)
+        self.K = None if K is None else np.asarray(K, np.float64).reshape(3, 3)
         self._items = select(sorted(frames.items()), stride, max_frames)
 
     def _describe(self, position: int) -> str:
@@ -102,6 +120,6 @@ class SevenScenesSource(IndexedSource):
             rgb=rgb,
             depth=depth,
             T_world_cam=pose,
-            K=self.K.copy(),
+            K=seven_scenes_intrinsics(rgb.shape[1], rgb.shape[0]) if self.K is None else self.K.copy(),
             path=str(color_path),
         )

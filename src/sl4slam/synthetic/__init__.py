@@ -3,12 +3,13 @@
 - :func:`make_world` builds a seeded room with furniture boxes and rich procedural textures.
 - :func:`camera_path` gives a looping path (last pose = first pose) with one floor-only stretch.
 - :func:`render_frames` ray-casts RGB and depth images (vectorized numpy).
-- :func:`write_synthetic_sequence` writes all of it as a TUM RGB-D folder that
+- :func:`write_synthetic_sequence` writes all of it as a TUM RGB-D folder, and
+  :func:`write_seven_scenes_sequence` as a 7-Scenes sequence folder, that
   :func:`sl4slam.io.open_source` reads back with depth, poses and intrinsics.
 """
 
 from sl4slam.synthetic.render import cast_rays, default_intrinsics, render_frames, render_pixels
-from sl4slam.synthetic.sequence import read_synthetic_metadata, write_synthetic_sequence
+from sl4slam.synthetic.sequence import read_synthetic_metadata, write_seven_scenes_sequence, write_synthetic_sequence
 from sl4slam.synthetic.world import (
     CEILING_SURFACE,
     FLOOR_SURFACE,
@@ -29,6 +30,7 @@ __all__ = [
     "cast_rays",
     "default_intrinsics",
     "write_synthetic_sequence",
+    "write_seven_scenes_sequence",
     "read_synthetic_metadata",
     "World",
     "FLOOR_SURFACE",

@@ -1,17 +1,20 @@
-"""Write a synthetic world's rendered sequence as a TUM RGB-D folder."""
+"""Write a synthetic world's rendered sequence as a TUM RGB-D folder or a 7-Scenes sequence folder."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import shutil
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
 
 from sl4slam.errors import UserError
+from sl4slam.io.seven_scenes import SEVEN_SCENES_INVALID_DEPTH, seven_scenes_intrinsics
 from sl4slam.io.tum import TUM_DEPTH_SCALE, write_tum_trajectory
 from sl4slam.synthetic.render import default_intrinsics, render_frames
 from sl4slam.synthetic.world import (
@@ -60,6 +63,51 @@ def _longest_run(flags: np.ndarray) -> tuple[int, int]:
     return best
 
 
+def _check_request(out_dir: Path, num_frames: int, width: int, height: int, overwrite: bool) -> None:
+    if int(num_frames) < 2:
+        raise UserError(f"--frames must be at least 2, got {num_frames}")
+    if int(width) < 16 or int(height) < 16:
+        raise UserError(f"image size must be at least 16x16 px, got {width}x{height}")
+    if out_dir.exists() and not (out_dir.is_dir() and not any(out_dir.iterdir())) and not overwrite:
+        raise UserError(f"output folder {out_dir} already exists and is not empty; choose another folder or overwrite it")
+
+
+def _write_image(path: Path, image: np.ndarray) -> None:
+    """Write an 8-bit RGB (converted to OpenCV's BGR) or a 16-bit single-channel PNG."""
+    data = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image
+    if not cv2.imwrite(str(path), data):
+        raise UserError(f"cannot write {path}; check free disk space and permissions")
+
+
+@contextlib.contextmanager
+def _staged(out_dir: Path) -> Iterator[Path]:
+    """A temporary sibling folder that replaces ``out_dir`` when the block succeeds (removed otherwise)."""
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = out_dir.with_name(f".{out_dir.name}.{os.getpid()}.tmp")
+    if staging.exists():
+        shutil.rmtree(staging)
+    staging.mkdir()
+    try:
+        yield staging
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        os.replace(staging, out_dir)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+
+
+def _metadata(world, seed: int, num_frames: int, width: int, height: int, K: np.ndarray, depth_scale: float,
+              depth_range: tuple[float, float], **extra) -> str:
+    """``synthetic.json``: what was rendered, with which camera, and the depth range met."""
+    metadata = {
+        "generator": "sl4slam.synthetic", "seed": int(seed), "num_frames": num_frames, "width": width, "height": height,
+        "fps": SYNTHETIC_FPS, "depth_scale": depth_scale, "K": K.tolist(), **extra,
+        "depth_range_m": list(depth_range), "room_size_m": world.layout.room_max.tolist(), "num_boxes": world.num_boxes,
+    }
+    return json.dumps(metadata, indent=2) + "\n"
+
+
 def write_synthetic_sequence(
     out_dir: str | Path,
     num_frames: int = 600,
@@ -94,12 +142,7 @@ def write_synthetic_sequence(
         ``out_dir`` as a Path.
     """
     out_dir = Path(out_dir)
-    if int(num_frames) < 2:
-        raise UserError(f"--frames must be at least 2, got {num_frames}")
-    if int(width) < 16 or int(height) < 16:
-        raise UserError(f"image size must be at least 16x16 px, got {width}x{height}")
-    if out_dir.exists() and not (out_dir.is_dir() and not any(out_dir.iterdir())) and not overwrite:
-        raise UserError(f"output folder {out_dir} already exists and is not empty; choose another folder or overwrite it")
+    _check_request(out_dir, num_frames, width, height, overwrite)
     num_frames, width, height = int(num_frames), int(width), int(height)
 
     world = make_world(seed)
@@ -108,12 +151,8 @@ def write_synthetic_sequence(
     stamps = _timestamps(num_frames)
     names = [f"{stamp:.6f}.png" for stamp in stamps]
 
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = out_dir.with_name(f".{out_dir.name}.{os.getpid()}.tmp")
-    if staging.exists():
-        shutil.rmtree(staging)
-    try:
-        (staging / "rgb").mkdir(parents=True)
+    with _staged(out_dir) as staging:
+        (staging / "rgb").mkdir()
         (staging / "depth").mkdir()
         floor_only = np.zeros(num_frames, bool)
         depth_min, depth_max = np.inf, 0.0
@@ -127,10 +166,8 @@ def write_synthetic_sequence(
             depth_max = max(depth_max, float(depth.max()))
             raw_depth = np.clip(np.round(depth * TUM_DEPTH_SCALE), 1, 65535).astype(np.uint16)
             for offset, index in enumerate(range(start, stop)):
-                ok_rgb = cv2.imwrite(str(staging / "rgb" / names[index]), cv2.cvtColor(rgb[offset], cv2.COLOR_RGB2BGR))
-                ok_depth = cv2.imwrite(str(staging / "depth" / names[index]), raw_depth[offset])
-                if not (ok_rgb and ok_depth):
-                    raise UserError(f"cannot write images under {staging}; check free disk space and permissions")
+                _write_image(staging / "rgb" / names[index], rgb[offset])
+                _write_image(staging / "depth" / names[index], raw_depth[offset])
                 if index in sheet_indices:
                     sheet_images[index] = rgb[offset].copy()
 
@@ -151,42 +188,73 @@ def write_synthetic_sequence(
         cv2.imwrite(str(staging / CONTACT_SHEET_FILE), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
         floor_start, floor_stop = _longest_run(floor_only)
-        metadata = {
-            "generator": "sl4slam.synthetic",
-            "seed": int(seed),
-            "num_frames": num_frames,
-            "width": width,
-            "height": height,
-            "fps": SYNTHETIC_FPS,
-            "depth_scale": TUM_DEPTH_SCALE,
-            "K": K.tolist(),
-            "floor_only": {
+        (staging / METADATA_FILE).write_text(_metadata(
+            world, seed, num_frames, width, height, K, TUM_DEPTH_SCALE, (depth_min, depth_max),
+            floor_only={
                 "start": floor_start,
                 "stop": floor_stop,
                 "count": int(floor_only.sum()),
                 "description": "frames [start, stop) see nothing but the floor (planar, degenerate case)",
                 "designed_path_interval": list(FLOOR_HOLD),
             },
-            "loop": {
+            loop={
                 "first_frame": 0,
                 "last_frame": num_frames - 1,
                 "description": "the last pose equals the first; the path circles the room once",
             },
-            "depth_range_m": [depth_min, depth_max],
-            "room_size_m": world.layout.room_max.tolist(),
-            "num_boxes": world.num_boxes,
-        }
-        (staging / METADATA_FILE).write_text(json.dumps(metadata, indent=2) + "\n")
-
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(staging, out_dir)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
+        ))
     logger.info(
         "wrote %d synthetic frames to %s (floor-only frames %d..%d)", num_frames, out_dir, floor_start, floor_stop - 1
     )
+    return out_dir
+
+
+def write_seven_scenes_sequence(
+    out_dir: str | Path,
+    num_frames: int = 600,
+    width: int = 320,
+    height: int = 240,
+    seed: int = 0,
+    overwrite: bool = False,
+    block_frames: int = 32,
+) -> Path:
+    """Render the synthetic world ``seed`` and write it as a 7-Scenes sequence folder (``seq-XX``).
+
+    The layout of the dataset's archives: ``frame-XXXXXX.color.png`` (8-bit RGB),
+    ``frame-XXXXXX.depth.png`` (16-bit millimetres, 65535 = invalid; every rendered pixel is
+    valid) and ``frame-XXXXXX.pose.txt`` (4x4 camera-to-world matrix), plus ``synthetic.json``
+    (seed, size, ``K``). The camera is the published 7-Scenes one (fx = fy = 585, cx = 320,
+    cy = 240 at 640x480) scaled to ``width`` x ``height``, which is what
+    :class:`sl4slam.io.SevenScenesSource` and the dense evaluation assume for this layout; 4:3
+    sizes keep square pixels.
+
+    For an evaluation root, write it as ``ROOT/<scene>/seq-01``. Written to a temporary sibling
+    folder, then renamed into place. Arguments as :func:`write_synthetic_sequence`.
+    """
+    out_dir = Path(out_dir)
+    _check_request(out_dir, num_frames, width, height, overwrite)
+    num_frames, width, height = int(num_frames), int(width), int(height)
+
+    world = make_world(seed)
+    poses = _path_from_layout(world.layout, path_parameters(num_frames))
+    K = seven_scenes_intrinsics(width, height)
+    with _staged(out_dir) as staging:
+        depth_min, depth_max = np.inf, 0.0
+        for start in range(0, num_frames, block_frames):
+            stop = min(start + block_frames, num_frames)
+            rgb, depth = render_frames(world, poses[start:stop], K, width, height)
+            depth_min = min(depth_min, float(depth.min()))
+            depth_max = max(depth_max, float(depth.max()))
+            # millimetres; 65535 is reserved for "no measurement"
+            raw_depth = np.clip(np.round(depth * 1000.0), 1, SEVEN_SCENES_INVALID_DEPTH - 1).astype(np.uint16)
+            for offset, index in enumerate(range(start, stop)):
+                stem = staging / f"frame-{index:06d}"
+                _write_image(stem.with_name(stem.name + ".color.png"), rgb[offset])
+                _write_image(stem.with_name(stem.name + ".depth.png"), raw_depth[offset])
+                np.savetxt(stem.with_name(stem.name + ".pose.txt"), poses[index], fmt="%.10e", delimiter="\t")
+        (staging / METADATA_FILE).write_text(_metadata(world, seed, num_frames, width, height, K, 1000.0,
+                                                       (depth_min, depth_max), layout="7scenes"))
+    logger.info("wrote %d synthetic frames in the 7-Scenes layout to %s", num_frames, out_dir)
     return out_dir
 
 

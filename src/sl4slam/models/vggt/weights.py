@@ -24,8 +24,8 @@ from pathlib import Path
 
 import torch
 
-from ...errors import MissingWeightsError, UserError
-from ..hub import DEFAULT_HUB_FILENAME, DEFAULT_HUB_ID, resolve_weights
+from ...errors import UserError
+from ..hub import DEFAULT_HUB_ID, resolve_weights
 from .model import SKIPPED_PREFIXES, VGGT, VGGTModelConfig
 
 logger = logging.getLogger(__name__)

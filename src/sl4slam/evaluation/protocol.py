@@ -1,0 +1,714 @@
+"""The evaluation protocol: runs x sequences x grid points, resumable, with shared frontend caches.
+
+What one evaluation does (``sl4slam eval`` / ``sl4slam sweep``, or :func:`evaluate`):
+
+1. Finds the dataset's sequences under the root (:mod:`.datasets`) and checks every setting
+   before any work.
+2. Builds one run per (grid point, sequence, run ``r``); run ``r`` uses seed ``r`` for every seeded
+   setting (:data:`SEEDED_SETTINGS`), so the runs differ by their random draws only.
+3. Skips runs already finished with the same settings (``result.json`` in the run's folder).
+4. Runs the rest through an :class:`~.executors.Executor`: each run is a full
+   :func:`sl4slam.runner.run_slam` into ``OUT/runs/<point>/<sequence>/run-<r>/``, followed by
+   its metrics (:func:`run_one`).
+5. Writes the tables, CSV, JSON and figures (:mod:`.report`).
+
+Frontend caches. The model's outputs depend only on which frames each submap asks for and on
+the frontend's own settings; the backend never changes them. :func:`frontend_cache_key` names
+exactly those settings, so a run whose key was recorded before (``--cache-frontend`` stores each
+recording in ``OUT/frontend_cache/<sequence>/<key>/``, ``--replay DIR`` reads such a store)
+replays it instead of running the model: a backend sweep runs the model once per sequence and
+seed. Runs that would record the same key wait for the first recording.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import dataclasses
+import hashlib
+import io
+import itertools
+import json
+import logging
+import os
+import shutil
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import SLAMConfig, config_from_dict, config_to_dict
+from ..errors import UserError
+from .datasets import Dataset, Sequence, get_dataset
+from .executors import Executor, cpu_count, limit_threads, make_executor
+
+log = logging.getLogger("sl4slam")
+
+SEEDED_SETTINGS = ("sim.seed", "alignment.seed")
+"""Every setting that seeds a random choice; run ``r`` sets each of them to ``r``."""
+RESULT_FILE = "result.json"
+CACHE_KEY_FILE = "key.json"
+DEFAULT_POINT = "default"
+
+
+@dataclass
+class EvalSettings:
+    """How results are measured (not how SLAM runs: that is :class:`sl4slam.config.SLAMConfig`)."""
+
+    dataset: str = "tum"
+    """"tum" or "7scenes"."""
+    runs: int = 5
+    """Runs per sequence and grid point; run r uses seed r (paper: 5 runs, reference evals/eval_*.sh)."""
+    dense: bool = True
+    """7-Scenes: dense accuracy / completion / chamfer besides the ATE (paper's 7-Scenes tables)."""
+    max_depth: float = 4.5
+    """Ground-truth depth beyond this (m) is dropped (reference dense evaluation: Kinect range)."""
+    max_error: float = 0.5
+    """Nearest-neighbour distances are clipped here (m) (reference dense evaluation)."""
+    icp_voxel_size: float = 0.05
+    """Voxel size (m) of the copies ICP runs on (reference dense evaluation)."""
+    icp_max_correspondence: float = 0.1
+    """ICP's maximum correspondence distance (m) (reference dense evaluation)."""
+    keep_keyframe_points: bool = False
+    """Keep each run's ``keyframes/`` (dense points per keyframe, ~2.4 MB each at VGGT's 518x392:
+    tens of GB for a full evaluation). Off: TUM runs do not write them, and 7-Scenes runs remove
+    them once the dense metrics are measured."""
+
+    def validate(self) -> None:
+        get_dataset(self.dataset)
+        if int(self.runs) < 1:
+            raise UserError(f"--runs must be at least 1, got {self.runs}")
+        for name in ("max_depth", "max_error", "icp_voxel_size", "icp_max_correspondence"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise UserError(f"evaluation setting {name} must be a positive number, got {value}")
+
+
+# --------------------------------------------------------------------------------------------
+# Grid of settings
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GridPoint:
+    """One combination of settings of a sweep: ``(("submap.size", 16), ("backend.kind", "sl4"))``."""
+
+    overrides: tuple[tuple[str, Any], ...] = ()
+
+    @property
+    def label(self) -> str:
+        return ", ".join(f"{k}={v}" for k, v in self.overrides) or DEFAULT_POINT
+
+    @property
+    def slug(self) -> str:
+        """Folder name of the point's runs."""
+        return "_".join(f"{k}={v}" for k, v in self.overrides).replace(os.sep, "-") or DEFAULT_POINT
+
+    def apply(self, config: SLAMConfig) -> SLAMConfig:
+        """A copy of ``config`` with this point's settings."""
+        config = copy.deepcopy(config)
+        for path, value in self.overrides:
+            _set(config, path, value)
+        return config
+
+
+def _resolve(config: SLAMConfig, path: str) -> tuple[Any, str]:
+    """The object holding setting ``path`` ("submap.size", "frontend") and the field name."""
+    parts = path.split(".")
+    target: Any = config
+    for depth, part in enumerate(parts):
+        names = {f.name for f in dataclasses.fields(target)}
+        if part not in names:
+            where = ".".join(parts[:depth]) or "the top level"
+            raise UserError(f"unknown setting '{path}' in --grid; settings of {where}: {', '.join(sorted(names))}")
+        if depth == len(parts) - 1:
+            break
+        target = getattr(target, part)
+        if not dataclasses.is_dataclass(target):
+            raise UserError(f"'{'.'.join(parts[:depth + 1])}' is a setting, not a section; write --grid {'.'.join(parts[:depth + 1])}=...")
+    if dataclasses.is_dataclass(getattr(target, parts[-1])):
+        raise UserError(f"'{path}' is a section; name one of its settings, e.g. --grid {path}.{dataclasses.fields(getattr(target, parts[-1]))[0].name}=...")
+    return target, parts[-1]
+
+
+def _set(config: SLAMConfig, path: str, value: Any) -> None:
+    target, name = _resolve(config, path)
+    setattr(target, name, value)
+
+
+def _parse_value(text: str, current: Any, path: str) -> Any:
+    text = text.strip()
+    try:
+        if isinstance(current, bool):
+            lowered = text.lower()
+            if lowered not in ("true", "false", "1", "0", "yes", "no", "on", "off"):
+                raise ValueError
+            return lowered in ("true", "1", "yes", "on")
+        if isinstance(current, int):
+            return int(text)
+        if isinstance(current, float):
+            value = float(text)
+            if not np.isfinite(value):
+                raise ValueError
+            return value
+    except ValueError:
+        raise UserError(f"--grid {path}: '{text}' is not a valid {type(current).__name__}") from None
+    if not text:
+        raise UserError(f"--grid {path}: empty value")
+    return None if current is None and text.lower() == "none" else text
+
+
+def parse_grid(specs: list[str] | None) -> list[GridPoint]:
+    """Grid points from ``["submap.size=8,16,32", "backend.kind=sl4,sim3"]`` (their product).
+
+    Each spec is ``SETTING=V1,V2,...`` with ``SETTING`` a config path as in a config file
+    (``section.name``, or a top-level name such as ``frontend``). Values are parsed as the
+    setting's type. The seeded settings cannot be swept: runs set them.
+    """
+    if not specs:
+        return [GridPoint()]
+    reference = SLAMConfig()
+    axes: list[list[tuple[str, Any]]] = []
+    seen: set[str] = set()
+    for spec in specs:
+        path, sep, values = spec.partition("=")
+        path = path.strip()
+        if not sep or not path or not values.strip():
+            raise UserError(f"--grid '{spec}': write SETTING=V1,V2,... (e.g. submap.size=8,16,32)")
+        if path in SEEDED_SETTINGS:
+            raise UserError(f"--grid {path}: seeds are set by the runs (run r uses seed r); use --runs instead")
+        if path in seen:
+            raise UserError(f"--grid names {path} twice; give all its values in one SETTING=V1,V2 list")
+        seen.add(path)
+        target, name = _resolve(reference, path)
+        parsed = [_parse_value(v, getattr(target, name), path) for v in values.split(",")]
+        if len(set(map(str, parsed))) != len(parsed):
+            raise UserError(f"--grid {path}: a value is repeated")
+        axes.append([(path, v) for v in parsed])
+    return [GridPoint(tuple(combination)) for combination in itertools.product(*axes)]
+
+
+def seeded(config: SLAMConfig, run: int) -> SLAMConfig:
+    """A copy of ``config`` whose seeded settings (:data:`SEEDED_SETTINGS`) are all ``run``."""
+    config = copy.deepcopy(config)
+    for path in SEEDED_SETTINGS:
+        _set(config, path, int(run))
+    return config
+
+
+# --------------------------------------------------------------------------------------------
+# Frontend caches
+# --------------------------------------------------------------------------------------------
+
+
+def frontend_cache_key(config: SLAMConfig, sequence: Sequence) -> dict:
+    """The settings that decide what the frontend returns for a sequence (see the module docstring).
+
+    Which frames a submap holds depends on the frame selection (stride, max_frames), the keyframe
+    selector, the submap size and loop slots, and the retrieval (with its seed, for ORB); what
+    the frontend returns for them on its own settings (all of ``sim`` including its seed; ``vggt``
+    except the device, so a cache recorded on a GPU replays on a CPU). With simulated false loops
+    (``sim.false_loop_rate``) the ``sim`` settings also decide the loop frames. Backend, alignment,
+    confidence and output settings are not part of it: changing them reuses the cache.
+    """
+    retrieval: dict[str, Any] = {"kind": "none"}
+    if config.submap.w_loop > 0 and config.retrieval.kind != "none":
+        retrieval = {k: v for k, v in dataclasses.asdict(config.retrieval).items() if k != "min_loop_inlier_ratio"}
+        if config.retrieval.kind in ("orb", "auto"):  # ORB's vocabulary and verification are seeded
+            retrieval["seed"] = config.alignment.seed
+    if config.frontend == "simulated":
+        frontend = dataclasses.asdict(config.sim)
+    else:
+        frontend = {k: v for k, v in dataclasses.asdict(config.vggt).items() if k != "device"}
+        frontend["use_point_head"] = config.submap.use_point_head
+    if retrieval["kind"] != "none" and config.sim.false_loop_rate > 0:
+        # injected wrong places change which loop frames are asked for, whatever the frontend
+        retrieval["false_loops"] = dataclasses.asdict(config.sim)
+    return {
+        "dataset": sequence.dataset,
+        "sequence": sequence.name,
+        "frames": {"stride": config.stride, "max_frames": config.max_frames},
+        "keyframes": dataclasses.asdict(config.keyframes),
+        "submap": {"size": config.submap.size, "w_loop": config.submap.w_loop},
+        "retrieval": retrieval,
+        "frontend": config.frontend,
+        "frontend_settings": frontend,
+    }
+
+
+def _digest(value: Any, length: int = 16) -> str:
+    return hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:length]
+
+
+def cache_folder(store: Path, key: dict) -> Path:
+    """Where the recording with ``key`` lives in a cache store."""
+    return Path(store) / str(key["sequence"]).replace(os.sep, "-") / _digest(key)
+
+
+def find_cache(stores: list[Path], key: dict) -> Path | None:
+    """The first store folder holding a complete recording for ``key``."""
+    for store in stores:
+        folder = cache_folder(store, key)
+        if (folder / CACHE_KEY_FILE).is_file() and any(folder.glob("submap_*.npz")):
+            return folder
+    return None
+
+
+# --------------------------------------------------------------------------------------------
+# One run
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class RunTask:
+    """Everything one run needs (picklable: it travels to worker processes and Ray nodes)."""
+
+    point: str
+    sequence: Sequence
+    run: int
+    config: dict
+    run_dir: str
+    settings: EvalSettings
+    fingerprint: str
+    replay_dir: str | None = None
+    record_to: str | None = None
+    threads: int = 0
+    cache_key: dict = field(default_factory=dict)
+
+
+def keyframe_clouds(run_dir: Path, dataset: Dataset, sequence: Sequence, config: SLAMConfig,
+                    max_depth: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Estimated and ground-truth clouds of a run's keyframes (the reference dense protocol).
+
+    For each ``keyframes/NNNNNN.npz`` (``NNNNNN`` = the frame's position in the source): the
+    frame's ground-truth depth is resized (nearest) to the estimate's resolution and unprojected
+    with the dataset's intrinsics scaled to that resolution and the ground-truth pose; depth
+    0 / invalid and beyond ``max_depth`` is dropped. The estimate keeps its confident points at
+    pixels where the ground truth is valid.
+
+    Returns ``(estimate (N, 3), ground_truth (M, 3), keyframes used)``.
+    """
+    from .metrics import ground_truth_points, resize_depth
+
+    files = sorted(p for p in (run_dir / "keyframes").glob("*.npz") if p.stem.isdigit())
+    if not files:
+        raise UserError(f"{run_dir} has no keyframes/*.npz; dense metrics need output.save_keyframe_points")
+    source = dataset.open(sequence, stride=config.stride, max_frames=config.max_frames)
+    estimate, truth, used = [], [], 0
+    for path in files:
+        with np.load(path) as keyframe:
+            points, mask, timestamp = keyframe["points_world"], keyframe["mask"], float(keyframe["timestamp"])
+        frame = source.get(int(path.stem))
+        if abs(frame.timestamp - timestamp) > 1e-6:
+            raise UserError(f"{path} is frame {path.stem} at t={timestamp}, but the source has t={frame.timestamp} there; "
+                            "was the run made with other stride / max_frames settings?")
+        if frame.depth is None or frame.T_world_cam is None:
+            continue  # no ground truth for this keyframe (the reference skips unmatched frames too)
+        height, width = points.shape[:2]
+        depth = resize_depth(frame.depth, height, width)
+        gt_points, valid = ground_truth_points(depth, dataset.intrinsics(width, height), frame.T_world_cam, max_depth)
+        estimate.append(points[valid & mask].astype(np.float64))
+        truth.append(gt_points)
+        used += 1
+    if not used:
+        raise UserError(f"none of the {len(files)} keyframes of {run_dir} has ground-truth depth and pose")
+    return np.concatenate(estimate), np.concatenate(truth), used
+
+
+def _measure(task: RunTask, dataset: Dataset, config: SLAMConfig, run_dir: Path) -> tuple[dict, dict]:
+    """Metrics of a finished run: ``(metrics, trajectory positions for the figure)``."""
+    from ..io import read_tum_trajectory
+    from .metrics import ate, dense_metrics
+
+    t_est, T_est = read_tum_trajectory(run_dir / "trajectory.txt")
+    t_gt, T_gt = dataset.ground_truth(task.sequence)
+    trajectory = ate(dataset.estimate_times(t_est), T_est, t_gt, T_gt, max_time_diff=dataset.ate_max_time_diff)
+    metrics: dict[str, Any] = {
+        "ate_rmse": trajectory.rmse, "ate_mean": trajectory.mean, "ate_median": trajectory.median,
+        "ate_max": trajectory.max, "ate_poses": trajectory.num_poses, "ate_scale": trajectory.scale,
+    }
+    if dataset.dense and task.settings.dense:
+        estimate, truth, used = keyframe_clouds(run_dir, dataset, task.sequence, config, task.settings.max_depth)
+        dense = dense_metrics(estimate, truth, trajectory.T_gt_est, voxel_size=task.settings.icp_voxel_size,
+                              max_correspondence=task.settings.icp_max_correspondence,
+                              max_error=task.settings.max_error, workers=max(1, task.threads or 1))
+        metrics.update(accuracy=dense.accuracy, completion=dense.completion, chamfer=dense.chamfer,
+                       dense_keyframes=used, dense_points_estimate=dense.num_estimate,
+                       dense_points_ground_truth=dense.num_ground_truth, icp_fitness=dense.icp_fitness)
+    positions = {"estimate_aligned": np.round(trajectory.positions_aligned, 5).tolist(),
+                 "ground_truth": np.round(trajectory.positions_gt, 5).tolist()}
+    return metrics, positions
+
+
+def _store_cache(recorded: Path, target: Path, key: dict) -> str | None:
+    """Move a run's fresh recording into the store (first writer wins); its path, or ``None``."""
+    if not any(recorded.glob("submap_*.npz")):
+        return None
+    (recorded / CACHE_KEY_FILE).write_text(json.dumps(key, indent=2, default=str) + "\n")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.rename(recorded, target)
+    except OSError:  # another run stored the same recording first
+        shutil.rmtree(recorded, ignore_errors=True)
+    return str(target)
+
+
+def _write_json(path: Path, payload: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=2, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+def _import_pipeline() -> None:
+    import evo.core.metrics  # noqa: F401
+    import evo.core.sync  # noqa: F401
+    import torch  # noqa: F401  (the runner asks it for the device)
+
+    from .. import frontend, outputs, pipeline, retrieval  # noqa: F401
+    from . import metrics  # noqa: F401
+
+
+def run_one(task: RunTask) -> dict:
+    """Run SLAM once and measure it; never raises (a failure is a result with its reason).
+
+    Writes the run's outputs, ``run.log`` (what the run printed) and ``result.json`` into
+    ``task.run_dir`` (emptied first, so no stale keyframe survives), moves a fresh frontend
+    recording into its store, and returns the result dict (see :func:`evaluate`).
+    """
+    from ..runner import run_slam
+
+    if task.threads:
+        limit_threads(task.threads)
+    _import_pipeline()  # so that a worker's first run is not timed with the imports
+    run_dir = Path(task.run_dir)
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    run_dir.mkdir(parents=True)
+    result: dict[str, Any] = {
+        "point": task.point, "sequence": task.sequence.name, "run": task.run, "seed": task.run,
+        "status": "failed", "reason": None, "metrics": {}, "counts": {}, "seconds": {},
+        "frontend": "replay" if task.replay_dir else ("recorded" if task.record_to else "model"),
+        "frontend_cache": task.replay_dir, "fingerprint": task.fingerprint, "run_dir": str(run_dir),
+    }
+    start = time.perf_counter()
+    log_text = io.StringIO()
+    try:
+        dataset = get_dataset(task.sequence.dataset)
+        config = config_from_dict(copy.deepcopy(task.config))
+        config.output.cache_frontend = task.record_to is not None
+        with contextlib.redirect_stdout(log_text):
+            summary = run_slam(task.sequence.path, run_dir, config, replay_dir=task.replay_dir, progress=False)
+        result["counts"] = summary.get("counts", {})
+        result["seconds"]["slam"] = round(float(summary["seconds"]["total"]), 3)
+        if task.record_to:
+            result["frontend_cache"] = _store_cache(run_dir / "frontend_cache", Path(task.record_to), task.cache_key)
+        t0 = time.perf_counter()
+        result["metrics"], result["trajectory"] = _measure(task, dataset, config, run_dir)
+        result["seconds"]["evaluation"] = round(time.perf_counter() - t0, 3)
+        if not task.settings.keep_keyframe_points:
+            shutil.rmtree(run_dir / "keyframes", ignore_errors=True)
+        result["status"] = "ok"
+    except UserError as exc:
+        result["reason"] = str(exc)
+    except Exception as exc:  # a bug or a library failure: keep the sweep going, keep the traceback
+        result["reason"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
+        log_text.write(traceback.format_exc())
+    result["seconds"]["total"] = round(time.perf_counter() - start, 3)
+    (run_dir / "run.log").write_text(log_text.getvalue())
+    _write_json(run_dir / RESULT_FILE, result)
+    return result
+
+
+def finished_runs(out_dir: Path) -> dict[str, dict]:
+    """Results of the runs finished in ``out_dir/runs`` by fingerprint (the settings they ran with).
+
+    A run is reused by fingerprint, not by folder: the same settings reached under another grid
+    point name (a sweep that grew an axis) are not run again.
+    """
+    finished: dict[str, dict] = {}
+    for path in sorted(Path(out_dir).glob(f"runs/*/*/run-*/{RESULT_FILE}")):
+        try:
+            stored = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if stored.get("status") == "ok" and stored.get("fingerprint"):
+            stored["run_dir"] = str(path.parent)
+            finished.setdefault(stored["fingerprint"], stored)
+    return finished
+
+
+def _reuse(task: RunTask, finished: dict[str, dict]) -> dict | None:
+    """The finished result with this task's settings, relabelled for this task's grid point."""
+    stored = finished.get(task.fingerprint)
+    return None if stored is None else {**stored, "point": task.point}
+
+
+# --------------------------------------------------------------------------------------------
+# The whole evaluation
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class EvalOutcome:
+    """What :func:`evaluate` did.
+
+    Attributes:
+        results: one result dict per (point, sequence, run), in that order.
+        points, sequences, missing: the grid points, the evaluated sequences, the paper's
+            sequences absent from the root.
+        computed, reused: runs executed now / taken from an earlier evaluation.
+        files: the report files written.
+        seconds: wall time of the evaluation; executor: where the runs ran.
+    """
+
+    results: list[dict]
+    points: list[GridPoint]
+    sequences: list[Sequence]
+    missing: list[str]
+    computed: int
+    reused: int
+    files: dict[str, Any]
+    seconds: float
+    executor: str
+
+
+def _needs_gpu(config: SLAMConfig) -> bool:
+    return config.frontend == "vggt" and config.vggt.device != "cpu"
+
+
+def _check_configs(configs: list[SLAMConfig], needs_model: bool) -> None:
+    """Every grid point's settings, and the model weights when a run will need them (one line each)."""
+    for config in configs:
+        config.validate()
+    if needs_model:
+        from ..models.hub import resolve_weights
+
+        for weights in sorted({c.vggt.weights for c in configs if c.frontend == "vggt"}):
+            resolve_weights(weights)
+
+
+def evaluate(
+    root: str | Path,
+    out_dir: str | Path,
+    settings: EvalSettings | None = None,
+    config: SLAMConfig | None = None,
+    grid: list[str] | None = None,
+    sequences: list[str] | None = None,
+    workers: int | None = None,
+    threads: int | None = None,
+    ray: bool = False,
+    ray_address: str | None = None,
+    replay_dir: str | Path | None = None,
+    progress: bool = True,
+    stream=None,
+    executor: Executor | None = None,
+) -> EvalOutcome:
+    """Evaluate SLAM on a benchmark's sequences with the paper's protocol (module docstring).
+
+    Args:
+        root: dataset root (``rgbd_dataset_freiburg1_*`` folders, or ``<scene>/seq-01``).
+        out_dir: where runs, caches and the report go; an earlier evaluation there is resumed.
+        settings: dataset, runs and metric settings.
+        config: the SLAM settings (a grid point overrides some; runs set the seeds).
+        grid: sweep specs (``["submap.size=8,16,32", "backend.kind=sl4,sim3"]``).
+        sequences: names or folders to evaluate (default: the paper's, those present).
+        workers: parallel runs (default: one per core, or per GPU for model runs on GPUs).
+        threads: threads per run (default: cores // workers).
+        ray, ray_address: run on Ray (see :class:`~.executors.RayExecutor`).
+        replay_dir: a frontend cache store of an earlier evaluation (its ``frontend_cache/``).
+        progress: print one line per finished run to ``stream`` (default stderr).
+        executor: run on this executor (the caller closes it) instead of one made from
+            ``workers``, ``threads`` and ``ray``.
+
+    Returns:
+        :class:`EvalOutcome`. Each result dict holds ``point, sequence, run, seed, status``
+        (``ok`` / ``failed``), ``reason``, ``metrics`` (``ate_rmse`` ..., and ``accuracy``,
+        ``completion``, ``chamfer`` on 7-Scenes), ``counts``, ``seconds``, ``frontend``
+        (``model`` / ``recorded`` / ``replay``) and ``trajectory`` (aligned positions).
+    """
+    from . import report
+
+    start = time.perf_counter()
+    stream = stream if stream is not None else sys.stderr
+    settings = settings if settings is not None else EvalSettings()
+    settings.validate()
+    dataset = get_dataset(settings.dataset)
+    base, record = _base_config(config, settings, dataset)
+    points = parse_grid(grid)
+    chosen, missing = dataset.resolve(root, sequences)
+    out_dir = Path(out_dir).expanduser()
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UserError(f"--out {out_dir} exists and is not a folder; choose another output folder")
+    store = out_dir / "frontend_cache"
+    stores = [store] + ([_check_replay_dir(Path(replay_dir).expanduser())] if replay_dir else [])
+
+    point_configs = [point.apply(base) for point in points]
+    tasks = _build_tasks(points, point_configs, chosen, settings, out_dir)
+    finished = finished_runs(out_dir)
+    results: list[dict | None] = [_reuse(task, finished) for task in tasks]
+    todo = [i for i, r in enumerate(results) if r is None]
+    waves = _plan_recordings(tasks, todo, stores, store if record else None)
+    needs_model = any(tasks[i].replay_dir is None and tasks[i].config["frontend"] == "vggt" for i in todo)
+    _check_configs(point_configs, needs_model and not ray)
+
+    description = "nothing to run"
+    if todo:
+        if progress:
+            replaying = sum(tasks[i].replay_dir is not None for i in todo)
+            recording = sum(tasks[i].record_to is not None for i in todo)
+            print(f"evaluating {len(todo)} run(s) ({len(tasks) - len(todo)} reused) of {len(chosen)} sequence(s) x "
+                  f"{len(points)} setting(s) x {settings.runs} run(s) into {out_dir}: {replaying} replay a recording, "
+                  f"{recording} record one, {len(waves[1])} replay those afterwards", file=stream, flush=True)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        owned = executor is None
+        if owned:
+            gpus = _gpus(point_configs, needs_model, ray)
+            if workers is None:
+                workers = max(1, min(len(todo), cpu_count() if ray else (gpus or cpu_count())))
+            executor = make_executor(workers, ray=ray, ray_address=ray_address, threads=threads, gpus=gpus)
+        with executor if owned else contextlib.nullcontext(executor):
+            description = executor.description
+            if progress:
+                print(f"running on {description}", file=stream, flush=True)
+            _execute(executor, tasks, waves, results, stores, stream if progress else None)
+    outcome = EvalOutcome(results=[r for r in results if r is not None], points=points, sequences=chosen,
+                          missing=missing, computed=len(todo), reused=len(tasks) - len(todo), files={},
+                          seconds=time.perf_counter() - start, executor=description)
+    outcome.files = report.write_report(out_dir, outcome, settings, base)
+    return outcome
+
+
+def _base_config(config: SLAMConfig | None, settings: EvalSettings, dataset: Dataset) -> tuple[SLAMConfig, bool]:
+    """The runs' common config, and whether frontend outputs are to be recorded."""
+    base = copy.deepcopy(config) if config is not None else SLAMConfig()
+    record = bool(base.output.cache_frontend)
+    base.output.cache_frontend = False  # recording is decided per run (RunTask.record_to)
+    if dataset.dense and settings.dense:
+        from .metrics import require_open3d
+
+        require_open3d()
+        base.output.save_keyframe_points = True
+    elif not settings.keep_keyframe_points:
+        base.output.save_keyframe_points = False  # nothing measures them
+    return base, record
+
+
+def _check_replay_dir(path: Path) -> Path:
+    if not path.is_dir():
+        raise UserError(f"--replay {path} is not a folder; pass the frontend_cache/ folder of an earlier evaluation")
+    if any(path.glob("submap_*.npz")):
+        raise UserError(f"--replay {path} is one run's recording; eval replays the frontend_cache/ folder of an "
+                        "earlier evaluation (OUT/frontend_cache), which holds one recording per sequence and settings")
+    return path
+
+
+def _build_tasks(points: list[GridPoint], point_configs: list[SLAMConfig], sequences: list[Sequence],
+                 settings: EvalSettings, out_dir: Path) -> list[RunTask]:
+    """One run per (grid point, sequence, seed), in that order, each with its fingerprint and cache key."""
+    # what a run's numbers depend on besides its config (not the number of runs)
+    measurement = {k: v for k, v in dataclasses.asdict(settings).items() if k not in ("runs", "dataset")}
+    tasks = []
+    for point, point_config in zip(points, point_configs):
+        for sequence in sequences:
+            for run in range(settings.runs):
+                run_config = seeded(point_config, run)
+                config_dict = config_to_dict(run_config)
+                fingerprint = _digest({"config": config_dict, "measure": measurement,
+                                       "sequence": [sequence.dataset, sequence.name, str(sequence.path.resolve())]})
+                tasks.append(RunTask(
+                    point=point.label, sequence=sequence, run=run, config=config_dict,
+                    run_dir=str(out_dir / "runs" / point.slug / sequence.name.replace(os.sep, "-") / f"run-{run}"),
+                    settings=settings, fingerprint=fingerprint, cache_key=frontend_cache_key(run_config, sequence),
+                ))
+    return tasks
+
+
+def _plan_recordings(tasks: list[RunTask], todo: list[int], stores: list[Path],
+                     record_into: Path | None) -> tuple[list[int], list[int]]:
+    """Two waves of task indices: replays, recordings and uncached runs first; runs waiting for a recording after.
+
+    Sets ``replay_dir`` of the runs whose key is recorded, and ``record_to`` of the first run of
+    each key that is not (when recording).
+    """
+    first, second, planned = [], [], set()
+    for i in todo:
+        task = tasks[i]
+        found = find_cache(stores, task.cache_key)
+        digest = _digest(task.cache_key)
+        if found is not None:
+            task.replay_dir = str(found)
+            first.append(i)
+        elif record_into is not None and digest in planned:
+            second.append(i)
+        else:
+            if record_into is not None:
+                task.record_to = str(cache_folder(record_into, task.cache_key))
+                planned.add(digest)
+            first.append(i)
+    return first, second
+
+
+def _gpus(configs: list[SLAMConfig], needs_model: bool, ray: bool) -> int:
+    """Local: GPUs to spread the workers over; Ray: 1 when each model run asks for a GPU."""
+    if not (needs_model and any(_needs_gpu(c) for c in configs)):
+        return 0
+    if ray:
+        return 1
+    import torch
+
+    return torch.cuda.device_count() if torch.cuda.is_available() else 0
+
+
+def _execute(executor: Executor, tasks: list[RunTask], waves: tuple[list[int], list[int]], results: list,
+             stores: list[Path], stream) -> None:
+    """Run the waves, filling ``results``; one progress line per finished run when ``stream`` is given."""
+    from .report import one_line
+
+    done = sum(r is not None for r in results)
+    for wave in waves:
+        for i in wave:
+            task = tasks[i]
+            task.threads = getattr(executor, "threads", 0)
+            if task.replay_dir is None and task.record_to is None:
+                found = find_cache(stores, task.cache_key)  # recorded by the first wave
+                task.replay_dir = str(found) if found is not None else None
+        for index, returned in _run_wave(executor, [tasks[i] for i in wave]):
+            i = wave[index]
+            results[i] = returned if isinstance(returned, dict) else _crashed(tasks[i], returned)
+            done += 1
+            if stream is not None:
+                print(f"[{done}/{len(tasks)}] {one_line(results[i])}", file=stream, flush=True)
+
+
+def _run_wave(executor: Executor, tasks: list[RunTask]):
+    if not tasks:
+        return iter(())
+    return executor.map_unordered(run_one, tasks)
+
+
+def _crashed(task: RunTask, error: BaseException) -> dict:
+    """Result of a run whose worker died (or could not be reached)."""
+    reason = f"{type(error).__name__}: {error}".splitlines()[0] or type(error).__name__
+    return {"point": task.point, "sequence": task.sequence.name, "run": task.run, "seed": task.run,
+            "status": "failed", "reason": f"the worker running it failed ({reason})", "metrics": {}, "counts": {},
+            "seconds": {}, "frontend": None, "frontend_cache": None, "fingerprint": task.fingerprint,
+            "run_dir": task.run_dir}
+
+
+__all__ = [
+    "EvalSettings",
+    "EvalOutcome",
+    "GridPoint",
+    "RunTask",
+    "SEEDED_SETTINGS",
+    "evaluate",
+    "frontend_cache_key",
+    "keyframe_clouds",
+    "parse_grid",
+    "run_one",
+    "seeded",
+]

@@ -1,0 +1,391 @@
+"""The viewer: reading result folders (both formats), the live viewer's redraw logic against exact
+world points, the point budget, the server's port and host handling, and the page in a real
+headless browser."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from browser import chromium_path, drawn_fraction, interrupt, launch
+from result_folders import write_known_result
+from sl4slam.errors import UserError
+from sl4slam.outputs import keyframe_world_points
+from sl4slam.results import load_result
+from sl4slam.submap import StoredKeyframe
+from sl4slam.viewer.scene import MapState, ViewerSettings, confidence_threshold, make_cloud
+
+# ----------------------------------------------------------------------------- result folders
+def test_version_1_folder_loops_come_from_the_summary(tmp_path: Path) -> None:
+    truth = write_known_result(tmp_path / "r", count=9, submap_size=3, loops=[{"submaps": [0, 2], "frame": 3}])
+    result = load_result(tmp_path / "r")
+    assert result.version == 1 and result.gt is None and len(result.keyframes) == 9
+    assert [(e.kind, e.submaps, e.frame) for e in result.edges] == [("loop", (0, 2), 3)]
+    segments = result.loop_segments()
+    assert segments.shape == (1, 2, 3)
+    # one end is frame 3's keyframe in submap 0, the other the nearest keyframe of submap 2
+    np.testing.assert_allclose(segments[0, 0], truth["T_world_cam"][1, :3, 3])
+    centres = truth["T_world_cam"][6:9, :3, 3]
+    nearest = centres[np.argmin(np.linalg.norm(centres - segments[0, 0], axis=1))]
+    np.testing.assert_allclose(segments[0, 1], nearest)
+
+
+def test_version_2_folder_has_edges_and_ground_truth(tmp_path: Path) -> None:
+    truth = write_known_result(tmp_path / "r", count=6, version=2, confidence=True, loops=[{"submaps": [0, 1], "frame": 0}])
+    result = load_result(tmp_path / "r")
+    assert result.version == 2 and result.gt is not None
+    np.testing.assert_allclose(result.gt[1], truth["T_world_cam"], atol=1e-8)
+    assert result.keyframes[0].load().confidence.dtype == np.float32
+
+
+def test_not_a_result_folder_is_one_line(tmp_path: Path) -> None:
+    (tmp_path / "x").mkdir()
+    with pytest.raises(UserError, match="not an sl4slam result folder"):
+        load_result(tmp_path / "x")
+    write_known_result(tmp_path / "y")
+    summary = json.loads((tmp_path / "y" / "summary.json").read_text())
+    (tmp_path / "y" / "summary.json").write_text(json.dumps({**summary, "format": {"name": "other", "version": 1}}))
+    with pytest.raises(UserError, match="not an sl4slam result"):
+        load_result(tmp_path / "y")
+
+
+# ----------------------------------------------------------------------------- scene shaping
+def test_cloud_decimation_is_a_uniform_truncation() -> None:
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(10000, 3))
+    cloud = make_cloud(3, points, rng.integers(0, 255, (10000, 3), dtype=np.uint8), None, fraction=0.5, seed=1)
+    assert len(cloud) == 5000 and cloud.full_count == 10000
+    kept = cloud.offsets.astype(np.float64) + cloud.centre
+    from scipy.spatial import cKDTree
+
+    distance, nearest = cKDTree(points).query(kept)
+    assert distance.max() < 1e-5 and len(np.unique(nearest)) == 5000  # a subset, no point twice
+    cloud.truncate(0.25)
+    assert len(cloud) == 2500
+    np.testing.assert_allclose(cloud.offsets.mean(0) + cloud.centre, points.mean(0), atol=0.1)  # still spread out
+
+
+def test_confidence_threshold_is_a_percentile_of_the_shown_points() -> None:
+    clouds = [make_cloud(i, np.zeros((100, 3)), np.zeros((100, 3), np.uint8), np.arange(100) + 100 * i, 1.0)
+              for i in range(2)]
+    assert confidence_threshold(clouds, 0) == -np.inf
+    assert confidence_threshold(clouds, 50) == pytest.approx(99.5)
+    assert sum(int((c.confidence >= confidence_threshold(clouds, 25)).sum()) for c in clouds) == 150
+
+
+# ----------------------------------------------------------------------------- live viewer logic
+class FakeMapViewer:
+    """Stands in for the viser server: records what would be sent."""
+
+    def __init__(self, settings: ViewerSettings) -> None:
+        import threading
+
+        self.settings, self.state, self.lock = settings, MapState(), threading.RLock()
+        self.cloud_draws: list = []
+        self.port = 0
+
+    def draw_clouds(self, submap_ids=None):
+        self.cloud_draws.append(None if submap_ids is None else sorted(submap_ids))
+
+    def draw_cameras(self, thumbnails_for=()):
+        pass
+
+    def set_summary(self, markdown):
+        self.summary = markdown
+
+    def apply_follow(self, newest=False):
+        pass
+
+    def set_up_direction(self):
+        pass
+
+    def close(self):
+        pass
+
+
+def _keyframes(count_per_submap: int = 2, submaps: int = 3, size=(24, 32)):
+    rng = np.random.default_rng(0)
+    keyframes = []
+    K = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    for s in range(submaps):
+        for j in range(count_per_submap):
+            T = np.eye(4)
+            T[:3, 3] = [0.1 * j, 0.0, 0.0]
+            mask = rng.random(size) > 0.3
+            keyframes.append(StoredKeyframe(frame_index=10 * s + j, timestamp=float(10 * s + j), submap_id=s, slot=j + 1,
+                                            depth=rng.uniform(1, 2, size).astype(np.float16), mask_bits=np.packbits(mask),
+                                            confidence_rank=rng.integers(0, 255, (12, 16), dtype=np.uint8), K=K,
+                                            T_cam_submap=T, principal_point=K[:2, 2].copy()))
+    return keyframes
+
+
+def _pipeline(keyframes, estimates, edges=()):
+    """What the live viewer reads of a running pipeline (colours are re-read through ``_colors``)."""
+    return SimpleNamespace(keyframes=keyframes, backend=SimpleNamespace(estimates=lambda: estimates), edges=list(edges),
+                           num_frames=100, _colors=lambda k: np.full(k.shape + (3,), k.frame_index, np.uint8))
+
+
+def _world_points(keyframes, submap_id, H):
+    chunks = [keyframe_world_points(k, H) for k in keyframes if k.submap_id == submap_id]
+    return np.concatenate([X[valid] for X, valid in chunks])
+
+
+def test_live_viewer_redraws_only_the_submaps_a_loop_closure_moved() -> None:
+    from sl4slam.viewer.live import LiveViewer
+
+    keyframes = _keyframes()
+    similarity = np.diag([1.1, 1.1, 1.1, 1.0])
+    similarity[:3, 3] = [0.5, 0, 0]
+    estimates = {0: np.eye(4), 1: similarity, 2: similarity @ similarity}
+    fake = FakeMapViewer(ViewerSettings(point_budget=10**6))
+    viewer = LiveViewer(viewer=fake)
+    try:
+        viewer.apply(viewer_snapshot(viewer, _pipeline(keyframes[:4], {0: estimates[0], 1: estimates[1]})))
+        viewer.apply(viewer_snapshot(viewer, _pipeline(keyframes, estimates)))
+        assert fake.cloud_draws == [[0, 1], [2]]  # each submap drawn once, when it arrived
+        for s in range(3):
+            cloud = fake.state.clouds[s]
+            expected = _world_points(keyframes, s, estimates[s])
+            assert len(cloud) == len(expected)
+            np.testing.assert_allclose(np.sort(cloud.offsets + cloud.centre, axis=0), np.sort(expected, axis=0), atol=1e-4)
+            assert set(np.unique(cloud.colors).tolist()) == {k.frame_index for k in keyframes if k.submap_id == s}
+            assert fake.state.has_confidence()  # the keyframes' confidence percentiles drive the slider
+        # a loop closure moves submap 2 by a projective correction and leaves 0 and 1 in place
+        correction = np.eye(4)
+        correction[3, :3] = [0.02, -0.01, 0.03]
+        correction[:3, 3] = [0.0, 0.2, 0.0]
+        moved = {**estimates, 2: correction @ estimates[2]}
+        before = fake.state.clouds[1].offsets.copy()
+        viewer.apply(viewer_snapshot(viewer, _pipeline(keyframes, moved)))
+        assert viewer.redrawn[-1] == [2] and fake.cloud_draws[-1] == [2]
+        np.testing.assert_array_equal(fake.state.clouds[1].offsets, before)
+        cloud = fake.state.clouds[2]
+        expected = _world_points(keyframes, 2, moved[2])
+        np.testing.assert_allclose(np.sort(cloud.offsets + cloud.centre, axis=0), np.sort(expected, axis=0), atol=1e-4)
+        # a change below the tolerance is not a redraw
+        nudged = {**moved, 0: moved[0] + 1e-9}
+        viewer.apply(viewer_snapshot(viewer, _pipeline(keyframes, nudged)))
+        assert viewer.redrawn[-1] == []
+    finally:
+        viewer.close()
+
+
+def viewer_snapshot(viewer, pipeline):
+    """What ``on_submap`` would hand to the worker, built synchronously for the test."""
+    from sl4slam.viewer.live import _Snapshot
+
+    return _Snapshot(keyframes=list(pipeline.keyframes), estimates=dict(pipeline.backend.estimates()),
+                     edges=list(pipeline.edges), frames=pipeline.num_frames, colors=pipeline)
+
+
+def test_live_viewer_keeps_the_map_within_the_point_budget() -> None:
+    from sl4slam.viewer.live import LiveViewer
+
+    keyframes = _keyframes(count_per_submap=3, submaps=6)
+    estimates = {s: np.eye(4) for s in range(6)}
+    budget = 1500
+    fake = FakeMapViewer(ViewerSettings(point_budget=budget))
+    viewer = LiveViewer(viewer=fake)
+    try:
+        for s in range(6):
+            viewer.on_submap(_pipeline([k for k in keyframes if k.submap_id <= s], {i: estimates[i] for i in range(s + 1)}), s)
+            assert viewer.wait(30)
+            assert fake.state.total_points() <= budget
+        assert fake.state.fraction < 1.0 and viewer.updates >= 1
+        full = sum(c.full_count for c in fake.state.clouds.values())
+        assert fake.state.total_points() > budget / 2 - len(fake.state.clouds)  # halved no more than needed
+        assert full > budget
+    finally:
+        viewer.close()
+
+
+# ----------------------------------------------------------------------------- the server
+def test_missing_viser_is_one_line(tmp_path: Path) -> None:
+    write_known_result(tmp_path / "r")
+    code = ("import sys; sys.modules['viser'] = None\nfrom sl4slam.cli import main\n"
+            f"sys.exit(main(['view', {str(tmp_path / 'r')!r}]))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and len(lines) == 1 and 'pip install "sl4slam[viewer]"' in lines[0], proc.stderr
+
+
+def test_port_in_use_takes_the_next_free_one_and_says_so(tmp_path: Path) -> None:
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    import io
+
+    from sl4slam.viewer.app import MapViewer, is_loopback
+
+    with socket.socket() as blocker:
+        blocker.bind(("127.0.0.1", 0))
+        blocker.listen()
+        taken = blocker.getsockname()[1]
+        out = io.StringIO()
+        viewer = MapViewer(ViewerSettings(port=taken), stream=out)
+        try:
+            assert viewer.port != taken
+            lines = out.getvalue().splitlines()
+            assert lines == [f"port {taken} is in use; using {viewer.port}", f"viewer at http://127.0.0.1:{viewer.port}"]
+        finally:
+            viewer.close()
+    assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
+    assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.2")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _browser(playwright, profile: Path):
+    chromium = chromium_path()
+    if chromium is None:
+        pytest.skip("headless Chromium is not installed (apt-get install -y chromium)")
+    return launch(playwright, profile, chromium)
+
+
+def _wait_until_drawn(page, attempts: int = 30) -> float:
+    """Screenshots until the clouds have arrived and been drawn; the drawn fraction of the canvas."""
+    fraction = 0.0
+    for _ in range(attempts):
+        fraction = drawn_fraction(page.screenshot())
+        if fraction > 0.02:
+            break
+        time.sleep(1.0)
+    return fraction
+
+
+def _wait_for_line(proc, prefix: str, timeout: float = 60.0) -> str:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        line = proc.stdout.readline()
+        if line.startswith(prefix):
+            return line.strip()
+        if not line and proc.poll() is not None:
+            raise AssertionError(f"viewer exited: {proc.stderr.read()}")
+    raise AssertionError(f"no '{prefix}' line within {timeout} s")
+
+
+def test_view_in_a_real_browser(tmp_path: Path) -> None:
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+    write_known_result(tmp_path / "r", count=8, width=96, height=72, version=2, confidence=True,
+                       loops=[{"submaps": [0, 2], "frame": 0}])
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "sl4slam.cli", "view", str(tmp_path / "r"), "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ})
+    try:
+        url = _wait_for_line(proc, "viewer at").split()[-1]
+        assert url == f"http://127.0.0.1:{port}"
+        _wait_for_line(proc, "loaded")
+        with sync_api.sync_playwright() as playwright:
+            browser = _browser(playwright, tmp_path / "profile")
+            page = browser.new_page()
+            page.goto(url)
+            page.wait_for_selector("canvas", timeout=60000)
+            for label in ("Point size", "Min confidence %", "Colour", "Follow camera", "Keyframe", "Loop edges",
+                          "Ground truth"):
+                assert page.get_by_text(label, exact=True).count() >= 1, label
+            shown = page.get_by_text("points:", exact=False)
+            shown.first.wait_for(timeout=30000)
+            fraction = _wait_until_drawn(page)
+            (tmp_path / "view.png").write_bytes(page.screenshot())
+            assert fraction > 0.02, f"the 3D view is blank ({fraction:.4f} of the canvas drawn)"
+            assert "ATE RMSE" in page.content()
+            browser.close()
+    finally:
+        interrupt(proc)
+    assert proc.returncode in (0, 130), proc.stderr.read()
+
+
+def test_live_viewer_follows_a_real_run(tmp_path: Path) -> None:
+    """The pipeline's callback feeds a real viser server; the final scene is the polished result."""
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    import io
+
+    from result_folders import small_world_config
+    from sl4slam.frontend import make_frontend
+    from sl4slam.io import open_source
+    from sl4slam.pipeline import SLAMPipeline
+    from sl4slam.synthetic import write_synthetic_sequence
+    from sl4slam.viewer import LiveViewer
+
+    world = write_synthetic_sequence(tmp_path / "w", num_frames=60, width=96, height=72, seed=0)
+    config = small_world_config()
+    viewer = LiveViewer(ViewerSettings(port=_free_port(), point_budget=50_000), stream=io.StringIO())
+    calls = []
+    try:
+        pipeline = SLAMPipeline(config, make_frontend(config),
+                                on_submap=lambda p, s: (calls.append(s), viewer.on_submap(p, s)))
+        result = pipeline.run(open_source(str(world)), progress=False)
+        viewer.finish(result, {"counts": result.stats, "ate": {"rmse": 0.01, "poses": len(result.keyframes)}})
+        state = viewer.state
+        assert calls == list(range(result.stats["submaps"])) and viewer.updates >= 2 and viewer.error is None
+        assert sorted(state.clouds) == sorted(result.H_world_submap)
+        assert 0 < state.total_points() <= 50_000
+        np.testing.assert_allclose(state.T_world_cam, result.T_world_cam)
+        assert state.gt_positions is not None and len(state.gt_positions) == len(result.keyframes)
+        assert "ATE RMSE 0.0100" in viewer.viewer.gui_summary.content
+        # every cloud sits where the polished graph puts its submap (redrawn after the final polish)
+        for submap_id, cloud in state.clouds.items():
+            expected = _world_points([k for k in result.keyframes if k.submap_id == submap_id], submap_id,
+                                     result.H_world_submap[submap_id])
+            centre = expected.mean(0)
+            assert np.linalg.norm(cloud.offsets.mean(0) + cloud.centre - centre) < 0.02 * np.ptp(expected, axis=0).max()
+    finally:
+        viewer.close()
+
+
+@pytest.mark.slow
+def test_run_with_view_in_a_real_browser(tmp_path: Path) -> None:
+    """`sl4slam run --view`: the page shows the map while and after the run; Ctrl-C closes it."""
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+    from sl4slam.synthetic import write_synthetic_sequence
+
+    world = write_synthetic_sequence(tmp_path / "w", num_frames=120, width=96, height=72, seed=0)
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "sl4slam.cli", "run", str(world), "--out", str(tmp_path / "o"),
+                             "--frontend", "simulated", "--tau-disparity", "7.5", "--submap-size", "8", "--retrieval",
+                             "none", "--view", "--port", str(port), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = _wait_for_line(proc, "viewer at").split()[-1]
+        _wait_for_line(proc, "viewer stays open", timeout=300)
+        assert (tmp_path / "o" / "summary.json").is_file()
+        with sync_api.sync_playwright() as playwright:
+            browser = _browser(playwright, tmp_path / "profile")
+            page = browser.new_page()
+            page.goto(url)
+            page.wait_for_selector("canvas", timeout=60000)
+            assert _wait_until_drawn(page) > 0.02
+            assert "ATE RMSE" in page.content()
+            browser.close()
+    finally:
+        interrupt(proc)
+    assert proc.returncode == 0, proc.stderr.read()
+
+
+def test_a_run_without_keyframe_files_shows_its_trajectory(tmp_path: Path) -> None:
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    import io
+
+    from sl4slam.viewer import view_result
+
+    write_known_result(tmp_path / "r", count=5, keyframes=False)
+    out = io.StringIO()
+    viewer = view_result(tmp_path / "r", ViewerSettings(port=_free_port()), block=False, stream=out)
+    try:
+        assert len(viewer.state.T_world_cam) == 5 and viewer.state.total_points() == 0
+        assert "--save-keyframe-points" in viewer.gui_summary.content
+    finally:
+        viewer.close()
