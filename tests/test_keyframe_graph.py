@@ -14,15 +14,16 @@ import torch
 from safetensors.torch import load_file
 from scipy.spatial.transform import Rotation
 
+from sl4slam.alignment import HybridAligner
 from sl4slam.alignment.sim3 import calibration_scale_link
 from sl4slam.backend import BackendUpdateError, KeyframeBackend, SL4Backend, SubmapFrames, make_backend
 from sl4slam.backend.keyframe import sl4_adjoint, transport_information
-from sl4slam.config import BackendConfig, SLAMConfig, alignment_model, attention_check
+from sl4slam.config import AlignmentConfig, BackendConfig, SLAMConfig, alignment_model, attention_check
 from sl4slam.edges import is_camera_link
 from sl4slam.errors import UserError
 from sl4slam.frontend import make_frontend
 from sl4slam.frontend.overlap import overlap_match_ratio
-from sl4slam.geometry import apply_transform, normalize_sl4, se3_inverse, unproject_depth
+from sl4slam.geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse, unproject_depth
 from sl4slam.io import open_source
 from sl4slam.models.vggt.attention import MatchRatioProbe, mean_top_quarter
 from sl4slam.models.vggt.model import VGGT, VGGTModelConfig
@@ -32,6 +33,7 @@ from sl4slam.pipeline import SLAMPipeline
 from sl4slam.retrieval import make_retrieval
 from sl4slam.runner import run_slam
 from sl4slam.synthetic import write_synthetic_sequence
+from sl4slam.types import FrameView
 
 GENERATORS = np.stack([np.asarray(gtsam.SL4.Hat(e)) for e in np.eye(15)])
 
@@ -91,6 +93,41 @@ def test_calibration_scale_is_the_median_depth_ratio_despite_outliers() -> None:
     assert link.extras["scale"] == pytest.approx(s, rel=0.03)
     with pytest.raises(ValueError, match="finite"):
         calibration_scale_link(K_a, T_a, K_b, T_b, np.full((3, 3), np.nan), X_b[:3])
+
+
+def hybrid_views(rng: np.random.Generator, H_b_a: np.ndarray, noise: float) -> tuple[FrameView, FrameView]:
+    """The frame in submap ``a`` (a bumpy surface, 48x64) and in submap ``b``, whose points are
+    ``H_b_a`` of ``a``'s (with relative depth noise) and whose camera agrees with ``a``'s on the image."""
+    height, width = 48, 64
+    K = intrinsics(55.0)
+    rows, cols = np.mgrid[0:height, 0:width]
+    depth = (2.0 + 0.6 * np.sin(cols / 9.0) * np.cos(rows / 7.0)).astype(np.float32)  # well off any plane
+    T_a = rigid(rng)
+    points_a = unproject_depth(depth[None], K[None], T_a[None])[0]
+    mask = np.ones((height, width), dtype=bool)
+    P_b = K @ T_a[:3] @ np.linalg.inv(H_b_a)  # the same image seen in submap b
+    K_b, T_world_cam, _ = decompose_projection(P_b)
+    T_b = se3_inverse(T_world_cam)
+    camera_b = apply_transform(T_b, apply_transform(H_b_a, points_a.reshape(-1, 3).astype(np.float64)))
+    depth_b = (camera_b[:, 2] * np.exp(rng.normal(scale=noise, size=len(camera_b)))).reshape(height, width)
+    points_b = unproject_depth(depth_b[None].astype(np.float32), K_b[None], T_b[None])[0]
+    return FrameView(points_a, mask, K, T_a), FrameView(points_b, mask, K_b, T_b)
+
+
+def test_hybrid_link_keeps_the_calibration_link_unless_the_points_show_a_projective_distortion() -> None:
+    rng = np.random.default_rng(6)
+    config = AlignmentConfig(inlier_threshold=0.02)
+    similar = normalize_sl4(np.diag([1.4, 1.4, 1.4, 1.0]) @ rigid(rng, 0.1, 0.2))  # cameras and depth agree up to scale
+    view_a, view_b = hybrid_views(rng, similar, noise=0.003)
+    link = HybridAligner(config).align(view_a, view_b, seed=0)
+    assert link.model == "sl4" and is_camera_link(link) and link.fallback is None
+    assert link.extras["hybrid_ratio"] < config.hybrid_margin
+    distorted = similar.copy()
+    distorted[3, :3] = [0.08, -0.05, 0.06]  # a relative perspective part the cameras cannot carry
+    view_a, view_b = hybrid_views(rng, normalize_sl4(distorted), noise=0.0005)
+    fit = HybridAligner(config).align(view_a, view_b, seed=0)
+    assert not is_camera_link(fit) and fit.extras["hybrid_ratio"] > config.hybrid_margin
+    assert fit.inlier_ratio > 0.99
 
 
 # ---------------------------------------------------------------------------- the graph's factors

@@ -134,10 +134,11 @@ class AlignmentConfig(Section):
         "model": "--alignment", "min_points": "--alignment-min-points",
         "min_inlier_ratio": "--alignment-min-inlier-ratio", "max_condition": "--alignment-max-condition"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
-        "model": ("auto", "sl4", "calibration", "sim3-points", "sim3-cameras"),
+        "model": ("auto", "sl4", "calibration", "hybrid", "sim3-points", "sim3-cameras"),
         "planar_model": ("calibration-scale", "camera-constrained")}
     advanced: ClassVar[frozenset[str]] = frozenset({
         "max_correspondences", "max_points", "max_refit_points", "planarity_threshold", "min_relief", "planar_model",
+        "hybrid_margin",
         "near_planar_threshold", "refit",
         "hypothesis_batch", "early_stop_spread", "preemptive_points", "preemptive_keep",
         "preemptive_min_keep", "refit_rounds", "refit_min_gain", "small_set",
@@ -148,8 +149,9 @@ class AlignmentConfig(Section):
     """What measures the relative transform: "sl4" (15-DOF DLT in RANSAC, the paper), "sim3-points"
     (7-DOF Umeyama in RANSAC on the same points), "sim3-cameras" (the shared frame's two cameras and
     the median depth ratio), "calibration" (VGGT-SLAM 2.0: the shared frame's two cameras, their
-    intrinsics and the median depth ratio, no free projective terms; ``sl4slam.alignment.calibration``),
-    or "auto": "sl4" for the SL(4) submap graph, "calibration" for the keyframe graph, "sim3-cameras"
+    intrinsics and the median depth ratio, no free projective terms; ``calibration_scale_link``),
+    "hybrid" (that link, or the 15-DOF fit where it explains the frame ``hybrid_margin`` times
+    better), or "auto": "sl4" for the SL(4) submap graph, "calibration" for the keyframe graph, "sim3-cameras"
     for the Sim(3) graph. A Sim(3) graph needs a Sim(3) model."""
     ransac_iterations: int = 300
     """Most RANSAC hypotheses (paper: 300, always drawn in full there)."""
@@ -179,6 +181,11 @@ class AlignmentConfig(Section):
     distance to the camera) below which the 15-DOF fit is degenerate: VGGT's depth errors (AbsRel
     2-4 %, smooth) fake about that much structure on a flat floor, which RANSAC then turns into a
     projective error (benchmarks/bench_robustness.py). Rooms and desks seen from 1-3 m: 0.2-0.3."""
+    hybrid_margin: float = 4.0
+    """"hybrid" alignment: the 15-DOF fit replaces the calibration-and-scale link when the link's
+    median transfer error on the shared frame is more than this many times the fit's. Measured on the
+    synthetic world (benchmarks/bench_keyframe_graph.py): 1.2-3.8 under the vggt profile's depth warps,
+    4.3-16 under a relative perspective distortion of 0.1 (non-degenerate frames)."""
     planar_model: str = "calibration-scale"
     """What measures a degenerate shared frame: "calibration-scale" (its two cameras and depth
     ratio: VGGT-SLAM 2.0's link, immune to depth warps) or "camera-constrained" (a projective fit
@@ -241,6 +248,7 @@ class AlignmentConfig(Section):
         self._require("min_inliers", self.min_inliers >= 5, "at least 5 (one minimal sample)")
         self._require("planarity_threshold", 0 <= self.planarity_threshold < 1, "in [0, 1)")
         self._require("min_relief", 0 <= self.min_relief < 1, "in [0, 1)")
+        self._require("hybrid_margin", self.hybrid_margin >= 1, "at least 1")
         self._require("near_planar_threshold", self.planarity_threshold <= self.near_planar_threshold <= 1,
                       "between --ransac-planarity-threshold and 1")
         self._require("seed", self.seed >= 0, ">= 0")
@@ -842,7 +850,7 @@ class SLAMConfig(Section):
         for section in sections(self):
             section.validate()
         model = alignment_model(self)
-        if self.backend.kind == "sim3" and model in ("sl4", "calibration"):
+        if self.backend.kind == "sim3" and model in ("sl4", "calibration", "hybrid"):
             raise UserError(f"--alignment {model} measures projective transforms, which a Sim(3) graph cannot hold; "
                             "use --alignment sim3-points or sim3-cameras with --backend sim3")
 

@@ -470,6 +470,11 @@ class FactorGraphBackend(Backend):
             self.update()
         if not self._isam.size():
             return self.estimates()
+        values = self.polished_values(max_iterations)
+        return {submap_id: self._from_gtsam(self._at(values, self.key(submap_id))) for submap_id in self._order}
+
+    def polished_values(self, max_iterations: int = 20) -> gtsam.Values:
+        """iSAM2's estimate polished by batch Gauss-Newton (see :meth:`final_estimates`), as ``gtsam.Values``."""
         graph = self.factor_graph()
         values = self._isam.calculateBestEstimate()
         error = graph.error(values)
@@ -488,7 +493,7 @@ class FactorGraphBackend(Backend):
             values, error = gtsam.Values(optimizer.values()), new_error  # a copy: the optimizer owns its values
             if converged:
                 break
-        return {submap_id: self._from_gtsam(self._at(values, self.key(submap_id))) for submap_id in self._order}
+        return values
 
     def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray,
                   frames: tuple[int, int] | None = None) -> float:

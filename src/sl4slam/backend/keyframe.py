@@ -223,19 +223,25 @@ class KeyframeBackend(Backend):
         submap = self._submaps[submap_id]
         return normalize_sl4(self.nodes.H_world_submap(submap.nodes[0]) @ submap.frames.T_cam_submap[0])
 
-    def _world(self, values: dict[int, np.ndarray]) -> WorldEstimate:
-        per_submap, per_keyframe = {}, {}
+    def world_estimate(self, final: bool = False) -> WorldEstimate:
+        """Every submap and every keyframe (through its own node), from iSAM2 or polished (``final``).
+
+        Vectorized over the nodes (thousands of them): ``X_n T_cam_submap`` for all at once.
+        """
+        X = self.nodes.estimate_matrices(final)
+        row = {node: k for k, node in enumerate(self.nodes.submap_ids)}
+        nodes, T, frame_of, first = [], [], [], []
         for submap_id in self._order:
             submap = self._submaps[submap_id]
-            T = submap.frames.T_cam_submap
-            per_submap[submap_id] = normalize_sl4(values[submap.nodes[0]] @ T[0])
-            for k in submap.frames.new:
-                per_keyframe[submap.frames.frame_indices[k]] = normalize_sl4(values[submap.nodes[k]] @ T[k])
+            for k, node in enumerate(submap.nodes):
+                nodes.append(row[node])
+                T.append(submap.frames.T_cam_submap[k])
+                frame_of.append(submap.frames.frame_indices[k] if k in submap.frames.new else None)
+                first.append(submap_id if k == 0 else None)
+        H = np.matmul(X[nodes], np.asarray(T)) if nodes else np.zeros((0, 4, 4))
+        per_submap = {s: H[i] for i, s in enumerate(first) if s is not None}
+        per_keyframe = {f: H[i] for i, f in enumerate(frame_of) if f is not None}
         return WorldEstimate(per_submap, per_keyframe)
-
-    def world_estimate(self, final: bool = False) -> WorldEstimate:
-        """Every submap and every keyframe (through its own node), from iSAM2 or polished (``final``)."""
-        return self._world(self.nodes.final_estimates() if final else self.nodes.estimates())
 
     def estimates(self) -> dict[int, np.ndarray]:
         return self.world_estimate().H_world_submap
