@@ -146,12 +146,41 @@ def test_camera_constrained_fit_recovers_a_planar_frame() -> None:
     # w > 0 on the points whatever sign the least squares produced (det cannot tell H from -H)
     w = np.c_[X_b, np.ones(len(X_b))] @ result.H[3]
     assert (w > 0).all()
-    # and the aligner prefers it over the Sim(3) stand-in for such a frame
+    # and the aligner uses it for such a frame when asked to
     view_a = FrameView(X_a.reshape(60, 50, 3).astype(np.float32), np.ones((60, 50), bool), *decompose_pose(P_a))
     view_b = FrameView(X_b.reshape(60, 50, 3).astype(np.float32), np.ones((60, 50), bool), K, T_cam_b)
-    aligned = make_aligner(SLAMConfig()).align(view_a, view_b, seed=0)
+    config = SLAMConfig()
+    config.alignment.planar_model = "camera-constrained"
+    aligned = make_aligner(config).align(view_a, view_b, seed=0)
     assert aligned.model == "sl4" and "camera-constrained" in aligned.fallback
     np.testing.assert_allclose(apply_transform(aligned.H, X_b), X_a, atol=1e-4)
+
+
+def test_calibration_scale_link_measures_a_flat_frame_without_its_points() -> None:
+    """The default for a degenerate frame: the two cameras and the depth ratio. Exact when the two
+    reconstructions differ by a calibration and a scale; a depth warp of the plane cannot bend it."""
+    rng = np.random.default_rng(11)
+    K_a = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
+    K_b = np.array([[290.0, 0, 160], [0, 290, 120], [0, 0, 1]])  # the frontend's focal differs by 3 %
+    T_cam_a = se3_inverse(np.block([[random_rotation(rng, 0.3), np.array([[0.2], [0.1], [-0.3]])], [np.zeros((1, 3)), 1]]))
+    T_cam_b = np.eye(4)
+    v, u = np.mgrid[0:60, 0:80] * 4.0
+    pixels = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], 1)
+    depth_b = 2.0 + 0.3 * pixels[:, 1] / 240  # a floor seen at an angle
+    scale = 1.7
+    X_b = (np.linalg.inv(K_b) @ pixels.T).T * depth_b[:, None]
+    X_a_cam = (np.linalg.inv(K_a) @ pixels.T).T * (scale * depth_b)[:, None]
+    X_a = apply_transform(se3_inverse(T_cam_a), X_a_cam)
+    warped = X_a_cam * (1 + 0.03 * np.sin(pixels[:, :1] / 40.0))  # a smooth depth warp in submap a
+    view_a = FrameView(apply_transform(se3_inverse(T_cam_a), warped).reshape(60, 80, 3).astype(np.float32),
+                       np.ones((60, 80), bool), K_a, T_cam_a)
+    view_b = FrameView(X_b.reshape(60, 80, 3).astype(np.float32), np.ones((60, 80), bool), K_b, T_cam_b)
+    aligned = make_aligner(SLAMConfig()).align(view_a, view_b, seed=0)
+    assert "calibration-and-scale" in aligned.fallback and aligned.extras["scale"] == pytest.approx(scale, rel=0.02)
+    np.testing.assert_allclose(apply_transform(aligned.H, X_b), X_a, atol=0.02 * 2.5 * scale)
+    exact = make_aligner(SLAMConfig()).camera_edge(
+        dataclasses.replace(view_a, points=X_a.reshape(60, 80, 3).astype(np.float32)), view_b)
+    np.testing.assert_allclose(apply_transform(exact.H, X_b), X_a, atol=1e-5)
 
 
 def decompose_pose(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -79,12 +79,15 @@ def test_loop_closure_reduces_drift(world: Path) -> None:
 def test_planar_shared_frame_falls_back_without_nan(world: Path) -> None:
     result = run(world, backend="sl4")
     floor = read_synthetic_metadata(world)["floor_only"]
-    fallbacks = [e for e in result.edges if e.fallback]
+    fallbacks = [e for e in result.edges if e.fallback and e.kind == "odometry"]
     assert fallbacks, "the floor-only stretch must trigger the degenerate-fit fallback"
     assert any(floor["start"] <= e.frame_index < floor["stop"] for e in fallbacks)
     # frames just after the stretch still see mostly floor; nothing far from it is degenerate
     assert all(floor["start"] - 30 <= e.frame_index < floor["stop"] + 30 for e in fallbacks)
-    assert all("coplanar" in e.fallback for e in fallbacks)
+    assert all("flat" in e.fallback or "coplanar" in e.fallback for e in fallbacks)
+    # the submaps carry a 0.2 projective distortion the camera link cannot express: the
+    # camera-constrained fit explains the floor and wins
+    assert all("camera-constrained" in e.fallback and e.inlier_ratio > 0.95 for e in fallbacks)
     assert np.isfinite(result.T_world_cam).all() and np.isfinite(result.K).all()
     assert all(np.isfinite(H).all() and abs(np.linalg.det(H) - 1) < 1e-6 for H in result.H_world_submap.values())
 

@@ -181,8 +181,10 @@ class Alignment:
         model: "sl4" or "sim3": the model actually fitted.
         fallback: why a constrained or weaker model replaced the requested one, or ``None``.
         extras: statistics of the estimator.
-        support: an evenly strided subset of the inlier pairs ``(X_a (M, 3), X_b (M, 3))``, kept
-            to weigh the edge by its evidence; ``None`` when the estimate used no points.
+        support: an evenly strided subset of the inlier pairs ``(X_a (M, 3), X_b (M, 3))`` (of all
+            pairs for a measurement not fitted to points), kept to weigh the edge by its evidence;
+            ``None`` when the estimate used no points.
+        support_count: how many pairs the support stands for.
     """
 
     H: np.ndarray
@@ -193,6 +195,7 @@ class Alignment:
     fallback: str | None = None
     extras: dict = field(default_factory=dict)
     support: tuple[np.ndarray, np.ndarray] | None = None
+    support_count: int = 0
 
     @property
     def num_inliers(self) -> int:

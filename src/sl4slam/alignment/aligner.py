@@ -144,6 +144,15 @@ class SL4Aligner(PointAligner):
             return link
         guess = stand_in.H if stand_in is not None else estimate_sim3(X_a, X_b, self.config, seed=seed).H
         constrained = camera_constrained_sl4(X_a, X_b, view_a.camera, view_b.camera, guess, self.config)
+        if self.config.planar_model == "auto":
+            link = self.camera_edge(view_a, view_b)
+            margin = self.config.planar_support_margin
+            if constrained is None or constrained.inlier_ratio < margin * link.inlier_ratio:
+                link.fallback = f"{why}; used the calibration-and-scale link of the frame's cameras"
+                return link
+            constrained.fallback = (f"{why}; used the camera-constrained projective fit (it explains "
+                                    f"{constrained.inlier_ratio:.3f} of the points, the camera link {link.inlier_ratio:.3f})")
+            return constrained
         if constrained is not None and (stand_in is None or constrained.inlier_ratio >= stand_in.inlier_ratio):
             constrained.fallback = f"{why}; used the camera-constrained projective fit"
             return constrained

@@ -60,6 +60,7 @@ def make_alignment(
     model: str,
     fallback: str | None = None,
     extras: dict | None = None,
+    fitted: bool = True,
 ) -> Alignment:
     """An :class:`Alignment` over every input row.
 
@@ -68,19 +69,24 @@ def make_alignment(
         X_a, X_b: ``(n, 3)`` the finite correspondences the estimate was scored on.
         finite: ``(N,)`` bool, which input rows those are (``n = finite.sum()``).
         inliers, r2: ``(n,)`` inlier mask and squared transfer errors on those rows.
+        fitted: the estimate was fitted to the inliers. A measurement that was not (a link from the
+            frame's cameras) keeps every point as its support and reports the RMS over all of them:
+            its evidence is how well it explains the frame, not a consensus set.
     """
     full = np.zeros(len(finite), dtype=bool)
     full[np.flatnonzero(finite)] = inliers
-    chosen = np.flatnonzero(inliers)
+    chosen = np.flatnonzero(inliers if fitted else np.ones(len(inliers), dtype=bool))
+    support_count = len(chosen)
     if len(chosen) > SUPPORT_POINTS:
         chosen = chosen[:: -(-len(chosen) // SUPPORT_POINTS)]
     return Alignment(
         H=H,
         inliers=full,
         inlier_ratio=float(inliers.sum() / len(finite)) if len(finite) else 0.0,
-        rms=inlier_rms(r2, inliers),
+        rms=inlier_rms(r2, inliers if fitted else np.ones(len(r2), dtype=bool)),
         model=model,
         fallback=fallback,
         extras=dict(extras or {}),
         support=(X_a[chosen].copy(), X_b[chosen].copy()),
+        support_count=support_count,
     )

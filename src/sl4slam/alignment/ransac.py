@@ -137,7 +137,8 @@ def ransac_best(
 ) -> tuple[np.ndarray | None, dict]:
     """Batched, adaptive hypothesize-and-score; returns the lowest-cost hypothesis (or None) and statistics.
 
-    Hypotheses come in batches of ``config.hypothesis_batch`` (one solver call and one scoring pass each).
+    Hypotheses come in batches of ``config.hypothesis_batch`` (one solver call and one scoring pass each);
+    ``stats["top"]`` keeps the ``config.refit_candidates`` lowest-cost ones for local optimization.
     After every batch the best hypothesis' inlier fraction ``w`` on the scoring subset updates the
     number of samples needed to have drawn an all-inlier sample with probability
     ``config.ransac_confidence``; drawing stops there, and never goes beyond
@@ -164,6 +165,7 @@ def ransac_best(
     needed = float(limit)
     stats = {"hypotheses": 0, "degenerate_samples": 0, "fully_scored_hypotheses": 0, "scored_points": int(len(scored))}
     best_H, best_cost = None, np.inf
+    top_H, top_cost = np.zeros((0, 4, 4)), np.zeros(0)  # the config.refit_candidates best so far
     while stats["hypotheses"] < min(limit, needed):
         count = min(int(config.hypothesis_batch), limit - stats["hypotheses"])
         samples, distinct = draw_samples(N, sample_size, count, rng, int(config.small_set))
@@ -180,6 +182,8 @@ def ransac_best(
             H = H[np.argpartition(costs, keep - 1)[:keep]]
         stats["fully_scored_hypotheses"] += int(len(H))
         costs, counts = msac_costs(H, sub_a, sub_b, threshold)
+        order = np.argsort(np.concatenate([top_cost, costs]), kind="stable")[: int(config.refit_candidates)]
+        top_H, top_cost = np.concatenate([top_H, H])[order], np.concatenate([top_cost, costs])[order]
         best = int(np.argmin(costs))
         if costs[best] < best_cost:
             best_H, best_cost = H[best], float(costs[best])
@@ -189,6 +193,7 @@ def ransac_best(
                 if not may_stop_early(sub_b[inliers]):
                     needed = float(limit)
     stats["stopped_early"] = stats["hypotheses"] < limit
+    stats["top"] = top_H
     return best_H, stats
 
 
@@ -306,6 +311,7 @@ def estimate_sim3(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, see
     rng = _rng(config, seed)
     threshold = float(config.inlier_threshold)
     H, stats = ransac_best(X_a, X_b, umeyama_sim3_batch, 3, threshold, config, rng)
+    stats.pop("top")
     if H is None:
         raise ValueError("Sim(3) alignment failed: every 3-point sample is collinear; the shared frame's points are degenerate")
     H, _, inliers, r2, refits = refine(H, X_a, X_b, threshold, _fit_sim3, 3, config)
@@ -386,11 +392,16 @@ def estimate_sl4(X_a: np.ndarray, X_b: np.ndarray, config: AlignmentConfig, seed
         return len(inliers_b) >= config.min_inliers and planarity(inliers_b, config.max_points) >= spread_needed
 
     H_n, ransac_stats = ransac_best(X_a_n, X_b_n, minimal_sl4_batch, 5, threshold_n, config, rng, well_spread)
+    candidates = ransac_stats.pop("top")
     stats.update(ransac_stats)
     if H_n is None:
         return fallback("every 5-point sample degenerate")
     if config.refit:
-        H_n, _, inliers, r2, refits = refine(H_n, X_a_n, X_b_n, threshold_n, _fit_sl4, config.min_inliers, config)
+        # Local optimization from the few best hypotheses: with realistic (non-projective) depth
+        # errors a noisy minimal sample's hypothesis can refit into a wrong local optimum whose
+        # perspective row is far off, while a near-best one refits into the right one.
+        refitted = [refine(H0, X_a_n, X_b_n, threshold_n, _fit_sl4, config.min_inliers, config) for H0 in candidates]
+        H_n, _, inliers, r2, refits = min(refitted, key=lambda fit: fit[1])
     else:
         _, inliers, r2 = score_one(H_n, X_a_n, X_b_n, threshold_n)
         refits = 0

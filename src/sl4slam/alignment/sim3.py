@@ -104,4 +104,5 @@ def _shared_frame_link(T_cam_a: np.ndarray, T_cam_b: np.ndarray, X_a: np.ndarray
     H_a_b = se3_inverse(T_cam_a) @ link @ T_cam_b
     r2 = ((apply_transform(H_a_b, X_b_c) - X_a_c) ** 2).sum(axis=1)
     inliers = r2 < threshold**2
-    return make_alignment(H_a_b, X_a_c, X_b_c, finite, inliers, r2, model, extras={"scale": scale, "method": method})
+    return make_alignment(H_a_b, X_a_c, X_b_c, finite, inliers, r2, model, extras={"scale": scale, "method": method},
+                          fitted=False)

@@ -69,6 +69,6 @@ def edge_information(alignment: Alignment, generators: np.ndarray, config: Backe
     X_a, X_b = support
     J = transfer_jacobians(alignment.H, X_b, generators)  # (n, 3, dim)
     variance = max(alignment.rms, 1e-12) ** 2 / 3.0  # per axis; exact fits are bounded by the clamp below
-    independent = min(float(alignment.num_inliers), float(config.effective_points))
+    independent = min(float(alignment.support_count or len(X_b)), float(config.effective_points))
     information = np.einsum("nid,nie->de", J, J) * (independent / len(X_b)) / variance
     return clamp_information(information, config.min_sigma, config.max_sigma) / inflation

@@ -44,6 +44,15 @@ brackets; every term is off when its magnitude is 0):
    its depth warp, 6.) is the frame's own, drawn from ``(seed, frame index)`` and so the same in
    every submap that contains the frame; the rest is drawn per submap.
 
+   *Unrelated frames* (``unrelated_overlap`` [0], ``unrelated_jitter`` [0.2]). A frame that
+   shares at most ``unrelated_overlap`` of its view with every other frame of the window (the
+   fraction of its true points, on a coarse grid, that another frame sees in front of it and inside
+   its image) is an image of another place to the model, which nonetheless places it: at the pose
+   of the window frame whose image it resembles most (correlation of small grey thumbnails), turned
+   and moved by ``unrelated_jitter`` (radians, and times the mean point distance). Its depth stays
+   its own. This is the case of a wrong-place loop candidate: its two reconstructions (old submap,
+   new submap) still agree with each other perfectly, only its place in the new one is invented.
+
 3. **Scale normalization** (``normalize_scale`` [on]). ``kappa = 1 / mean ||X||`` over the
    measured true pixels of all frames of the submap, so a normalized submap has mean point
    distance 1 (exactly so without camera errors), as VGGT's outputs do. ``N = diag(kappa,
@@ -187,7 +196,7 @@ _FRAME_ERROR_STREAM = 2
 _GAUGE_STREAM = 3
 _FRAME_OWN_STREAM = 4  # the part of a frame's errors shared by every submap it appears in
 # Sub-streams of _FRAME_ERROR_STREAM.
-_ROTATION, _TRANSLATION, _FOCAL, _WARP, _FLYING = range(5)
+_ROTATION, _TRANSLATION, _FOCAL, _WARP, _FLYING, _UNRELATED = range(6)
 
 # Cell size of the blob field relative to outlier_blob_px (calibrated so the blobs' mean
 # equivalent radius is about outlier_blob_px at the default fraction and above).
@@ -231,6 +240,9 @@ class SimulatedFrontend:
         truth = _TrueSubmap(frames, submap_id)
         H = self._distortion(truth, submap_id)
         K_frame, T_cam_ref, cameras_exact = self._frame_cameras(truth, frames, submap_id)
+        if cfg.unrelated_overlap > 0:
+            T_cam_ref, placed = self._place_unrelated(truth, frames, submap_id, K_frame, T_cam_ref)
+            cameras_exact = cameras_exact and not placed
 
         # Distorted cameras: P_i H^-1 = lambda_i K'_i [R'_i | t'_i].
         P = np.einsum("sij,sjk->sik", K_frame, T_cam_ref[:, :3, :])
@@ -365,6 +377,45 @@ class SimulatedFrontend:
                 T_ref_cam[i, :3, :3] = T_ref_cam[i, :3, :3] @ Rotation.from_rotvec(rotation_vector).as_matrix()
                 T_ref_cam[i, :3, 3] += shift
         return K, se3_inverse(T_ref_cam), False
+
+    def _place_unrelated(
+        self, truth: "_TrueSubmap", frames: Sequence[Frame], submap_id: int, K: np.ndarray, T_cam_ref: np.ndarray
+    ) -> tuple[np.ndarray, bool]:
+        """Poses ``T_cam_ref (S, 4, 4)`` with every unrelated frame placed as a model would place it
+        (see the module docstring), and whether any was."""
+        S, height, width = truth.depth.shape
+        if S < 2:
+            return T_cam_ref, False
+        rows = np.linspace(0, height - 1, 12).round().astype(int)
+        cols = np.linspace(0, width - 1, 16).round().astype(int)
+        grid = truth.points[:, rows][:, :, cols].reshape(S, -1, 3).astype(np.float64)  # (S, n, 3) in the submap frame
+        measured = truth.measured[:, rows][:, :, cols].reshape(S, -1)
+        overlap = np.zeros((S, S))
+        for j in range(S):  # points of every frame seen by camera j (true geometry)
+            X = grid @ truth.T_cam_ref[j, :3, :3].T + truth.T_cam_ref[j, :3, 3]
+            uvw = X @ truth.K[j].T
+            z = uvw[..., 2]
+            u, v = uvw[..., 0] / np.where(z > 0, z, 1.0), uvw[..., 1] / np.where(z > 0, z, 1.0)
+            seen = measured & (z > 0) & (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
+            overlap[:, j] = seen.mean(axis=1)
+        np.fill_diagonal(overlap, 0.0)
+        unrelated = np.flatnonzero(overlap.max(axis=1) <= self.config.unrelated_overlap)
+        unrelated = unrelated[unrelated > 0]  # the first frame defines the submap frame
+        if len(unrelated) == 0:
+            return T_cam_ref, False
+        thumbnails = np.stack([_thumbnail(f.rgb) for f in frames])
+        likeness = thumbnails @ thumbnails.T
+        T_ref_cam = se3_inverse(T_cam_ref)
+        jitter = self.config.unrelated_jitter
+        for i in unrelated:
+            others = np.setdiff1d(np.arange(S), unrelated)
+            twin = int(others[np.argmax(likeness[i, others])])
+            rng = self._frame_rng(submap_id, frames[i].index, _UNRELATED)
+            placed = T_ref_cam[twin].copy()
+            placed[:3, :3] = placed[:3, :3] @ Rotation.from_rotvec(jitter * rng.standard_normal(3)).as_matrix()
+            placed[:3, 3] += jitter * rng.standard_normal(3) / truth.normalizing_scale()
+            T_ref_cam[i] = placed
+        return se3_inverse(T_ref_cam), True
 
     def _corrupt_frame(
         self, depth_clean: np.ndarray, measured: np.ndarray, z_median: float, submap_id: int, frame_index: int
@@ -541,6 +592,15 @@ def flying_pixels(
     far = ndimage.maximum_filter(depth, footprint=reach, mode="nearest")
     mix = ndtr(_smooth_field(rng, *depth.shape, band_px))  # a unit normal field mapped to uniform (0, 1)
     return np.where(band, near + mix * (far - near), depth), band
+
+
+def _thumbnail(rgb: np.ndarray) -> np.ndarray:
+    """Zero-mean, unit-norm grey 32x24 thumbnail ``(768,)`` of an ``(H, W, 3)`` uint8 image."""
+    grey = cv2.resize(cv2.cvtColor(np.ascontiguousarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2GRAY), (32, 24),
+                      interpolation=cv2.INTER_AREA).astype(np.float64).reshape(-1)
+    grey -= grey.mean()
+    norm = np.linalg.norm(grey)
+    return grey / norm if norm > 0 else grey
 
 
 def _disk(radius: float) -> np.ndarray:

@@ -1,0 +1,170 @@
+"""Accuracy and robustness under realistic errors: simulator profiles x graph x loops x false loops.
+
+    python benchmarks/bench_robustness.py --seeds 5
+
+Synthetic world (600 frames at 320x240, one lap that returns to its start, with a floor-only
+stretch) and the real TUM fr1/xyz excerpt (37 frames, no revisit: loops off only), simulated
+frontend with the error profiles ``exact`` / ``vggt`` / ``hard`` (``sl4slam.frontend.simulated``),
+SL(4) and Sim(3) graphs, loops off / on (ORB retrieval), and false-loop rates 0 / 0.1 / 0.3 / 0.5
+(``--sim-false-loop-rate``: that fraction of the retrieval's proposals replaced by wrong places).
+Every setting at its default otherwise. Per case: median and range of the ATE over the seeds, loops
+accepted and rejected, and for the false-loop rates how many injected proposals were rejected and
+how many true proposals accepted. Also: evidence-weighted edges against one fixed sigma, and
+what a loop does to an undistorted map.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sl4slam.config import SLAMConfig, apply_sim_profile
+from sl4slam.frontend import make_frontend
+from sl4slam.io import open_source
+from sl4slam.outputs import compute_ate
+from sl4slam.pipeline import SLAMPipeline
+from sl4slam.retrieval import make_retrieval
+from sl4slam.synthetic import write_synthetic_sequence
+
+HERE = Path(__file__).resolve().parent
+WORLD = HERE / "out" / "synthetic_320x240"
+TUM = HERE.parent.parent / "shared" / "data" / "tum_rgbd_fr1_xyz_first37"
+PROFILES = ("exact", "vggt", "hard")
+RATES = (0.0, 0.1, 0.3, 0.5)
+
+
+def run(world: Path, profile: str, backend: str, loops: bool, seed: int, rate: float = 0.0, **backend_settings) -> dict:
+    config = SLAMConfig(frontend="simulated")
+    apply_sim_profile(config.sim, profile)
+    config.sim.seed = config.alignment.seed = seed
+    config.sim.false_loop_rate = rate
+    config.backend.kind = backend
+    for key, value in backend_settings.items():
+        setattr(config.backend, key, value)
+    config.retrieval.kind = "orb" if loops else "none"
+    start = time.perf_counter()
+    pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval, false_loops=config.sim))
+    try:
+        result = pipeline.run(open_source(str(world)), progress=False)
+    except Exception as exc:  # a run that aborts is a finding, not a crash of the benchmark
+        return {"error": f"{type(exc).__name__}: {exc}"}
+    injected = set(getattr(pipeline.retrieval, "injected", []))
+    loop_edges = [e for e in result.edges if e.kind == "loop"]
+    false = [e for e in loop_edges if (e.query_frame, e.frame_index) in injected]
+    true = [e for e in loop_edges if (e.query_frame, e.frame_index) not in injected]
+    return {
+        "ate": compute_ate(result).rmse,
+        "loops": sum(e.accepted for e in loop_edges),
+        "rejected": sum(not e.accepted for e in loop_edges),
+        "false": len(false), "false_rejected": sum(not e.accepted for e in false),
+        "true": len(true), "true_accepted": sum(e.accepted for e in true),
+        "segments": result.stats["segments"],
+        "seconds": time.perf_counter() - start,
+    }
+
+
+def summarize(runs: list[dict]) -> dict:
+    ok = [r for r in runs if "error" not in r]
+    ates = sorted(r["ate"] for r in ok)
+    total = {k: sum(r[k] for r in ok) for k in ("loops", "rejected", "false", "false_rejected", "true", "true_accepted")}
+    return {"median": float(np.median(ates)) if ates else float("nan"), "low": ates[0] if ates else float("nan"),
+            "high": ates[-1] if ates else float("nan"), "aborted": len(runs) - len(ok), **total,
+            "errors": [r["error"] for r in runs if "error" in r]}
+
+
+def row(name: str, s: dict) -> str:
+    fraction = lambda a, b: f"{a}/{b}" if b else "-"  # noqa: E731
+    return (f"| {name} | {s['median']:.4f} | {s['low']:.4f}-{s['high']:.4f} | {s['loops']} | {s['rejected']} | "
+            f"{fraction(s['false_rejected'], s['false'])} | {fraction(s['true_accepted'], s['true'])} | {s['aborted']} |")
+
+
+HEADER = ["| case | ATE median (m) | range (m) | loops accepted | loops rejected | false proposals rejected | "
+          "true proposals accepted | aborted runs |", "|---|---|---|---|---|---|---|---|"]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--profiles", nargs="+", default=list(PROFILES))
+    parser.add_argument("--out", default=str(HERE / "results" / "robustness.md"))
+    args = parser.parse_args()
+    if not (WORLD / "groundtruth.txt").is_file():
+        write_synthetic_sequence(WORLD, num_frames=600, width=320, height=240, seed=0)
+    seeds = range(args.seeds)
+    table: dict[tuple, dict] = {}
+    lines = []
+    start = time.perf_counter()
+
+    def case(key: tuple, world: Path, *run_args, **run_kwargs) -> dict:
+        table[key] = summarize([run(world, *run_args, seed=seed, **run_kwargs) for seed in seeds])
+        print(row(" / ".join(map(str, key)), table[key]), flush=True)
+        return table[key]
+
+    for profile in args.profiles:
+        for backend in ("sl4", "sim3"):
+            case(("synthetic", profile, backend, "loops off"), WORLD, profile, backend, False)
+            for rate in RATES:
+                case(("synthetic", profile, backend, f"loops on, false rate {rate}"), WORLD, profile, backend, True, rate=rate)
+            if TUM.is_dir():
+                case(("TUM xyz excerpt", profile, backend, "loops off"), TUM, profile, backend, False)
+    for weighting in ("evidence", "fixed"):
+        case(("synthetic", "vggt", "sl4", f"loops on, {weighting} weighting"), WORLD, "vggt", "sl4", True, weighting=weighting)
+        case(("synthetic", "exact", "sl4", f"loops off, {weighting} weighting"), WORLD, "exact", "sl4", False, weighting=weighting)
+        case(("synthetic", "exact", "sl4", f"loops on, {weighting} weighting"), WORLD, "exact", "sl4", True, weighting=weighting)
+    for key, s in table.items():
+        lines.append(row(" / ".join(map(str, key)), s))
+
+    def ratio(a: tuple, b: tuple) -> str:
+        return f"{table[a]['median'] / table[b]['median']:.2f}" if a in table and b in table else "-"
+
+    targets = []
+    for profile in args.profiles:
+        sl4_on, sim3_on = ("synthetic", profile, "sl4", "loops on, false rate 0.0"), ("synthetic", profile, "sim3", "loops on, false rate 0.0")
+        sl4_off = ("synthetic", profile, "sl4", "loops off")
+        at3 = table.get(("synthetic", profile, "sl4", "loops on, false rate 0.3"), {})
+        targets.append(
+            f"| {profile} | {ratio(sl4_on, sim3_on)} | "
+            f"{100 * (1 - table[sl4_on]['median'] / table[sl4_off]['median']):+.0f} % | "
+            f"{at3.get('false_rejected', 0)}/{at3.get('false', 0)} | {at3.get('true_accepted', 0)}/{at3.get('true', 0)} | "
+            f"{ratio(('synthetic', profile, 'sl4', 'loops on, false rate 0.3'), sl4_on)} | "
+            f"{sum(s['aborted'] for k, s in table.items() if k[1] == profile)} |")
+    errors = sorted({e for s in table.values() for e in s["errors"]})
+    text = [
+        "## Robustness under realistic errors (ATE RMSE, metres)",
+        "",
+        f"Machine: {os.cpu_count()}-core x86_64 CPU, no GPU; Python {platform.python_version()}. Date: {datetime.date.today()}. "
+        f"Total {time.perf_counter() - start:.0f} s; 1-minute load average at the end {os.getloadavg()[0]:.1f}.",
+        f"Command: `python benchmarks/bench_robustness.py --seeds {args.seeds}`.",
+        "Synthetic world: 600 frames at 320x240, one lap returning to its start, with a floor-only stretch; TUM: the "
+        "real fr1/xyz excerpt (37 frames). Simulated frontend with the profile named; every other setting at its default "
+        f"(submaps of 16 keyframes, tau_disparity 25 px, ORB retrieval when loops are on). Median and range over {args.seeds} "
+        "seeds (simulator and RANSAC). Counts are totals over the seeds; a false proposal is one the false-loop wrapper "
+        "injected, a true one any other retrieval proposal.",
+        "",
+        *HEADER,
+        *lines,
+        "",
+        "Targets (SL(4) graph, synthetic world, loops on): SL(4) / Sim(3) ATE <= 0.75 (the paper's TUM ratio 0.72); loops cut "
+        "the ATE by >= 30 %; at false-loop rate 0.3: >= 95 % of false proposals rejected, >= 80 % of true ones accepted, "
+        "ATE <= 1.15x the rate-0 ATE; no run aborts.",
+        "",
+        "| profile | SL(4) / Sim(3) | ATE change by loops | false rejected at 0.3 | true accepted at 0.3 | ATE at 0.3 / at 0 | aborted runs |",
+        "|---|---|---|---|---|---|---|",
+        *targets,
+        "",
+        *(["Runs that aborted: " + "; ".join(errors), ""] if errors else []),
+    ]
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text("\n".join(text))
+    print("\n".join(text))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
