@@ -5,9 +5,9 @@ Three parts, each a section of the report:
 - **accuracy**: ATE (``evo_ape -as`` RMSE, metres) over several simulator seeds, loops accepted and
   rejected, fallbacks (shared frames measured by a weaker model, e.g. on the floor-only stretch of the
   synthetic world) and map segments, for the graph designs of :data:`DESIGNS`, on the synthetic world
-  (600 frames, 320x240, one lap with a floor-only stretch) and on TUM fr1/desk (613 frames, real
-  depth and poses) with the simulated frontend under a simulator profile (``--profile``, default
-  ``vggt``);
+  (600 frames, 320x240, one lap with a floor-only stretch), the TUM fr1/xyz excerpt (37 frames) and
+  TUM fr1/desk (613 frames; both real depth and poses) with the simulated frontend under a simulator
+  profile (``--profile``, default ``vggt``); ``--worlds`` and ``--designs`` pick a subset;
 - **cost**: the synthetic world (160x120) replayed lap after lap for ``--submaps`` submaps with each
   graph, each in its own process: per-submap milliseconds of the graph steps (``backend``: adding the
   submap and the iSAM2 update; ``loops``: verifying and adding loops) at submaps 10-20 and at the
@@ -55,7 +55,9 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_pipeline import LapSource  # noqa: E402  (the same lap replay as the pipeline benchmark)
 
-TUM_DESK = HERE.parents[1] / "shared" / "data" / "tum_rgbd_fr1_desk"
+TUM = {"TUM fr1/xyz (37 frames)": HERE.parents[1] / "shared" / "data" / "tum_rgbd_fr1_xyz_first37",
+       "TUM fr1/desk": HERE.parents[1] / "shared" / "data" / "tum_rgbd_fr1_desk"}
+WORLDS = {"synthetic": "synthetic world", "xyz": "TUM fr1/xyz (37 frames)", "desk": "TUM fr1/desk"}
 DESIGNS = {
     # name: (graph, alignment model, what it is)
     "submap": ("submap", "auto", "VGGT-SLAM: a node per submap, 15-DOF fit (calibration link on degenerate frames)"),
@@ -80,13 +82,18 @@ def design_config(design: str, profile: str, seed: int, retrieval: str = "orb") 
     return config
 
 
-def worlds(work: Path) -> dict[str, Path]:
-    synthetic = work / "synthetic_320x240"
-    if not (synthetic / "groundtruth.txt").is_file():
-        write_synthetic_sequence(synthetic, num_frames=600, width=320, height=240, seed=0)
-    out = {"synthetic world": synthetic}
-    if (TUM_DESK / "groundtruth.txt").is_file():
-        out["TUM fr1/desk"] = TUM_DESK
+def worlds(work: Path, names: list[str]) -> dict[str, Path]:
+    """The accuracy part's sequences (``names`` from :data:`WORLDS`); TUM ones only where present."""
+    out = {}
+    for name in names:
+        title = WORLDS[name]
+        if name == "synthetic":
+            synthetic = work / "synthetic_320x240"
+            if not (synthetic / "groundtruth.txt").is_file():
+                write_synthetic_sequence(synthetic, num_frames=600, width=320, height=240, seed=0)
+            out[title] = synthetic
+        elif (TUM[title] / "groundtruth.txt").is_file():
+            out[title] = TUM[title]
     return out
 
 
@@ -105,13 +112,13 @@ def accuracy_run(world: Path, design: str, profile: str, seed: int) -> dict:
             "reasons": sorted({e.reason.split(" (")[0] for e in edges if e.kind == "loop" and not e.accepted and e.reason})}
 
 
-def accuracy(work: Path, profile: str, seeds: int) -> list[str]:
+def accuracy(work: Path, profile: str, seeds: int, names: list[str], designs: list[str]) -> list[str]:
     lines = [f"### Accuracy ({profile} profile, {seeds} seeds)", "",
              "ATE RMSE in metres (`evo_ape -as`), median and range over the seeds; counts are means per run. "
              "Fallbacks: odometry edges a weaker model measured (planar: those on a flat or planar shared frame).", ""]
-    for world_name, world in worlds(work).items():
+    for world_name, world in worlds(work, names).items():
         table: dict[str, list[dict]] = {}
-        for design in DESIGNS:
+        for design in designs:
             table[design] = [accuracy_run(world, design, profile, seed) for seed in range(seeds)]
             ates = [r["ate"] for r in table[design]]
             print(f"{world_name} {design}: ATE median {np.median(ates):.4f}", flush=True)
@@ -133,7 +140,7 @@ def accuracy(work: Path, profile: str, seeds: int) -> list[str]:
                          f"{mean('seconds'):.0f} | {'; '.join(reasons)} |")
         lines += ["", "Per seed (ATE): " + "; ".join(
             f"{design} " + " ".join(f"{r['ate']:.4f}" for r in runs) for design, runs in table.items()), ""]
-    lines += ["Designs: " + "; ".join(f"**{name}**: {text}" for name, (_, _, text) in DESIGNS.items()) + ".", ""]
+    lines += ["Designs: " + "; ".join(f"**{name}**: {DESIGNS[name][2]}" for name in designs) + ".", ""]
     return lines
 
 
@@ -263,6 +270,8 @@ def main() -> None:
     parser.add_argument("--submaps", type=int, default=300, help="submaps of the cost part")
     parser.add_argument("--verification-submaps", type=int, default=24, help="submaps of each verification run")
     parser.add_argument("--parts", default="accuracy,cost,verification")
+    parser.add_argument("--worlds", default="synthetic,xyz,desk", help="accuracy part: " + ", ".join(WORLDS))
+    parser.add_argument("--designs", default=",".join(DESIGNS), help="accuracy part: " + ", ".join(DESIGNS))
     parser.add_argument("--work", default=str(HERE / "out" / "keyframe_graph"))
     parser.add_argument("--out", default=str(HERE / "results" / "keyframe_graph.md"))
     parser.add_argument("--cost-child", default=None, help=argparse.SUPPRESS)
@@ -277,7 +286,7 @@ def main() -> None:
     parts = args.parts.split(",")
     sections: list[str] = []
     if "accuracy" in parts:
-        sections += accuracy(work, args.profile, args.seeds)
+        sections += accuracy(work, args.profile, args.seeds, args.worlds.split(","), args.designs.split(","))
     if "cost" in parts:
         sections += cost(work, args.profile, args.submaps)
     if "verification" in parts:
@@ -287,7 +296,8 @@ def main() -> None:
              f"start); Python {platform.python_version()}. Date: {datetime.date.today()}. "
              f"Total {(time.perf_counter() - start) / 60:.0f} min.",
              f"Command: `python benchmarks/bench_keyframe_graph.py --seeds {args.seeds} --profile {args.profile} "
-             f"--submaps {args.submaps} --parts {args.parts}`.", "", *sections]
+             f"--submaps {args.submaps} --parts {args.parts} --worlds {args.worlds} --designs {args.designs} "
+             f"--verification-submaps {args.verification_submaps}`.", "", *sections]
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text("\n".join(lines))
     print("\n".join(lines))
