@@ -241,9 +241,9 @@ def verification_run(work: Path, rate: float, attention: str, seed: int, design:
             "true_by_attention": sum(bool(e.reason and "attention" in e.reason) for e in true)}
 
 
-def verification(work: Path, seeds: int, submaps: int) -> list[str]:
+def verification(work: Path, seeds: int, submaps: int, graphs: list[str]) -> list[str]:
     rows = []
-    for design in ("keyframe", "submap"):
+    for design in graphs:
         for rate in (0.1, 0.3):
             for attention in ("on", "off"):
                 runs = [verification_run(work, rate, attention, seed, design, submaps) for seed in range(seeds)]
@@ -269,6 +269,8 @@ def main() -> None:
     parser.add_argument("--profile", default="vggt", help="simulator profile of the accuracy part (exact, vggt, hard)")
     parser.add_argument("--submaps", type=int, default=300, help="submaps of the cost part")
     parser.add_argument("--verification-submaps", type=int, default=24, help="submaps of each verification run")
+    parser.add_argument("--verification-seeds", type=int, default=0, help="seeds of the verification part (0: --seeds)")
+    parser.add_argument("--verification-graphs", default="keyframe,submap", help="graphs of the verification part")
     parser.add_argument("--parts", default="accuracy,cost,verification")
     parser.add_argument("--worlds", default="synthetic,xyz,desk", help="accuracy part: " + ", ".join(WORLDS))
     parser.add_argument("--designs", default=",".join(DESIGNS), help="accuracy part: " + ", ".join(DESIGNS))
@@ -290,14 +292,16 @@ def main() -> None:
     if "cost" in parts:
         sections += cost(work, args.profile, args.submaps)
     if "verification" in parts:
-        sections += verification(work, args.seeds, args.verification_submaps)
+        sections += verification(work, args.verification_seeds or args.seeds, args.verification_submaps,
+                                 args.verification_graphs.split(","))
     lines = ["## Keyframe graph (VGGT-SLAM 2.0) vs submap graph (VGGT-SLAM)", "",
              f"Machine: {os.cpu_count()}-core {platform.machine()} CPU, no GPU, shared (load average {load:.1f} at the "
              f"start); Python {platform.python_version()}. Date: {datetime.date.today()}. "
              f"Total {(time.perf_counter() - start) / 60:.0f} min.",
              f"Command: `python benchmarks/bench_keyframe_graph.py --seeds {args.seeds} --profile {args.profile} "
              f"--submaps {args.submaps} --parts {args.parts} --worlds {args.worlds} --designs {args.designs} "
-             f"--verification-submaps {args.verification_submaps}`.", "", *sections]
+             f"--verification-submaps {args.verification_submaps} --verification-seeds {args.verification_seeds} "
+             f"--verification-graphs {args.verification_graphs}`.", "", *sections]
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text("\n".join(lines))
     print("\n".join(lines))
