@@ -56,7 +56,7 @@ def run(world: Path, setting: str, backend: str, seed: int) -> dict:
         upgraded = pipeline.run(open_source(str(world)), progress=False)
     except Exception as exc:  # a run that aborts is a finding, not a crash of the benchmark
         return {"error": f"{type(exc).__name__}: {exc}"}
-    plain = pipeline._result(pipeline.backend.final_estimates())  # the same polished graph, not upgraded
+    plain = pipeline._result(pipeline.backend.world_estimate(final=True))  # the same polished graph, not upgraded
     applied = [u for u in upgraded.stats["metric_upgrade"] if u["applied"]]
     outcome = {"with": compute_ate(upgraded).rmse, "without": compute_ate(plain).rmse,
                "applied": len(applied), "segments": len(upgraded.stats["metric_upgrade"]),
