@@ -157,7 +157,7 @@ def main() -> None:
         f"Keyframe selection (runs on every input frame, not per submap): median "
         f"{np.median(keyframe_seconds) * 1000:.1f} ms per frame.",
         "",
-        f"Memory kept per keyframe: {stored / 1e6:.3f} MB (float16 depth, uint8 colour, bit-packed mask, camera); "
+        f"Memory kept per keyframe: {stored / 1e6:.3f} MB (float16 depth, bit-packed mask, half-resolution uint8 confidence rank, camera; no colours); "
         f"process peak RSS {rss:.0f} MiB after {len(pipeline.keyframes)} keyframes.",
         "",
     ]

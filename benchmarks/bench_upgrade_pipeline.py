@@ -70,12 +70,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one process each)")
+    parser.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=SETTINGS, help="simulator settings to run")
     parser.add_argument("--out", default=str(HERE / "results" / "upgrade_pipeline.md"))
     args = parser.parse_args()
     if not (WORLD / "groundtruth.txt").is_file():
         write_synthetic_sequence(WORLD, num_frames=600, width=160, height=120, seed=0)
     worlds = [("synthetic", WORLD)] + ([("TUM fr1/desk", DESK)] if DESK.is_dir() else [])
-    cases = [(name, path, setting, backend) for name, path in worlds for setting in SETTINGS for backend in ("sl4", "sim3")]
+    cases = [(name, path, setting, backend) for name, path in worlds for setting in args.settings for backend in ("sl4", "sim3")]
     jobs = [(case, seed) for case in cases for seed in range(args.seeds)]
     start, load_start = time.perf_counter(), os.getloadavg()[0]
     with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
@@ -105,7 +106,8 @@ def main() -> None:
         "",
         f"Machine: {os.cpu_count()}-core x86_64 CPU, no GPU, shared (1-minute load average {load_start:.1f} at the start); "
         f"Python {platform.python_version()}. Date: {datetime.date.today()}. Total {(time.perf_counter() - start) / 60:.0f} min.",
-        f"Command: `python benchmarks/bench_upgrade_pipeline.py --seeds {args.seeds} --jobs {args.jobs}`.",
+        f"Command: `python benchmarks/bench_upgrade_pipeline.py --seeds {args.seeds} --jobs {args.jobs}"
+        + (" --settings " + " ".join(f'"{x}"' for x in args.settings) if list(args.settings) != list(SETTINGS) else "") + "`.",
         "Synthetic world (600 frames at 160x120, one lap) and TUM fr1/desk (613 frames); simulated frontend with every "
         "submap distorted, the first one included; loops on (ORB). Each run is measured twice from one polished graph: "
         f"without the upgrade and as written (upgraded where it was applied). Median and range over {args.seeds} seeds.",

@@ -30,8 +30,8 @@ for the sought ``H = H_metric_world`` (Hartley & Zisserman, Multiple View Geomet
    pure translation and other critical motions (H&Z 19.9) a calibration direction, a small
    baseline with noisy cameras leaves the plane at infinity uncertain: the upgrade is then
    skipped and the reason names the part that is not determined.
-5. Never worse: skipped unless the constraint residual of the kept cameras falls clearly (config
-   ``max_residual_ratio``).
+5. Never worse: skipped when the kept cameras already satisfy the constraints to within
+   ``metric_residual``, and unless their constraint residual falls clearly (``max_residual_ratio``).
 6. Gauge: the similarity is chosen so that the first kept keyframe keeps its camera centre and
    orientation (as decomposed from the input), and the median distance of the kept camera centres
    to it is kept too, so trajectory files stay readable. The result is in SL(4), orientation
@@ -447,6 +447,9 @@ def estimate_metric_upgrade(
     constraints_out = intrinsic_constraint_residuals(K_out, pp)
     before, after = _rms(constraints_in[inliers]), _rms(constraints_out[inliers])
     details = {"start": best_start, "f0": f0, "fit_rms": _rms(final.fun), "kept": int(inliers.sum())}
+    if before < config.metric_residual:
+        return skipped(f"already metric (constraint residual {before:.2g} < {config.metric_residual:g})", inliers,
+                       condition, uncertainty, **details)
     if not after <= config.max_residual_ratio * before:
         return skipped(f"no clear improvement (constraint residual {before:.2g} -> {after:.2g})", inliers, condition, uncertainty,
                        **details)
