@@ -45,7 +45,26 @@ def _rss_bytes() -> int:
 
 
 def _peak_rss_bytes() -> int:
+    """Peak resident size since the start, or since the last :func:`_reset_peak_rss`."""
+    try:
+        with open("/proc/self/status") as handle:
+            for line in handle:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def _reset_peak_rss() -> bool:
+    """Restart the peak resident size from the current one (Linux ``clear_refs``), so that the
+    forward's peak is not the model construction's."""
+    try:
+        with open("/proc/self/clear_refs", "w") as handle:
+            handle.write("5")
+        return True
+    except OSError:
+        return False
 
 
 def _random_model(seed: int, heads: tuple[str, ...] = ("camera", "depth")):
@@ -91,6 +110,8 @@ def run_point(frames: int, device: str, repeats: int, warmup: int, seed: int, mo
             torch.cuda.synchronize()
         return out
 
+    build_peak = _peak_rss_bytes()
+    reset = _reset_peak_rss()
     for _ in range(warmup):
         forward()
     times = []
@@ -111,6 +132,9 @@ def run_point(frames: int, device: str, repeats: int, warmup: int, seed: int, mo
         "times_s": times,
         "median_s": statistics.median(times),
         "peak_rss_bytes": _peak_rss_bytes(),
+        "peak_rss_is_forward": reset,
+        "build_peak_rss_bytes": build_peak,
+        "head_chunk": HEAD_CHUNK,
         "rss_after_weights_bytes": rss_after_weights,
         "weight_bytes": weight_bytes,
         "estimate_bytes": estimate_peak_bytes(model.config, precision, frames, height, width, HEAD_CHUNK, dev.type),
@@ -255,6 +279,7 @@ def frontend_submaps(frames: int, submaps: int, seed: int) -> dict:
 
 
 def main() -> None:
+    global HEAD_CHUNK
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--device", default="auto", help="cpu, cuda or auto")
     parser.add_argument("--frames", type=int, nargs="+", default=None, help="sequence lengths S")
@@ -269,6 +294,7 @@ def main() -> None:
     parser.add_argument("--compare-once", nargs="*", default=[], help="modes timed once and at S = 1 only in --compare (slow ones)")
     parser.add_argument("--frontend-submaps", type=int, default=0,
                         help="also time this many submaps of --frames[0] frames through the VGGT frontend")
+    parser.add_argument("--head-chunk", type=int, default=HEAD_CHUNK, help="frames the dense heads decode at once")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--child", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--child-mode", default="auto", help=argparse.SUPPRESS)
@@ -289,11 +315,12 @@ def main() -> None:
     import torch
 
     device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device
-    if args.child is not None:
-        print(json.dumps(run_point(args.child, device, args.child_repeats, args.child_warmup, args.seed, args.child_mode)))
-        return
+    HEAD_CHUNK = args.head_chunk
     if args.child_frontend is not None:
         print(json.dumps(frontend_submaps(args.child, args.child_frontend, args.seed)))
+        return
+    if args.child is not None:
+        print(json.dumps(run_point(args.child, device, args.child_repeats, args.child_warmup, args.seed, args.child_mode)))
         return
     argv = " ".join(sys.argv[1:])
     if args.compare:
@@ -311,7 +338,8 @@ def main() -> None:
             single = device == "cpu" and frames > args.single_above
             repeats, warmup = (1, 0) if single else (args.repeats, 1)
             child_args = ["--child", str(frames), "--device", device, "--child-repeats", str(repeats),
-                          "--child-warmup", str(warmup), "--seed", str(args.seed), "--child-mode", mode]
+                          "--child-warmup", str(warmup), "--seed", str(args.seed), "--child-mode", mode,
+                          "--head-chunk", str(args.head_chunk)]
             result = _child(child_args, args.timeout)
             print(mode, frames, result if isinstance(result, str) else
                   f"{result['median_s']:.2f} s, peak RSS {result['peak_rss_bytes'] / 2**30:.2f} GiB, "
@@ -384,7 +412,9 @@ def write_report(path: Path, device: str, results: list, load, argv: str, fronte
         "",
         "Whole frontend forward (aggregator + camera head + depth head, VGGT-1B sizes, random weights, dense "
         f"heads {HEAD_CHUNK} frames at a time), S frames at {WIDTH}x{HEIGHT}; each point in a fresh process. "
-        "Time: median of the timed forwards (after one warm-up forward when repeats > 1). Estimate: "
+        "Time: median of the timed forwards (after one warm-up forward when repeats > 1). Peak RSS: the "
+        "forward's (the high-water mark is reset after the model is built, so it excludes building the model, "
+        "which in int8 and bf16 starts from float32 weights here). Estimate: "
         "`sl4slam.models.vggt.memory.estimate_peak_bytes` (what --max-memory plans with).",
         "",
     ]

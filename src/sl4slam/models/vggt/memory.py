@@ -20,6 +20,8 @@ the estimate is an upper bound of the measured peaks.
 
 from __future__ import annotations
 
+import functools
+import json
 from dataclasses import dataclass
 
 import torch
@@ -33,20 +35,26 @@ AGGREGATOR_WIDTHS = 16.0
 #: Float32 image-size maps of ``features / 2`` channels alive at the dense head's peak (measured, rounded up).
 HEAD_MAPS = 4.0
 #: Resident size of the interpreter, torch and this package on CPU before any weight (measured).
-CPU_RUNTIME_BYTES = 600 * 2**20
+CPU_RUNTIME_BYTES = 700 * 2**20
 GIB = 2**30
 
 
 def weight_bytes(model_config: VGGTModelConfig, precision: Precision, heads: tuple[str, ...] = ("camera", "depth")) -> int:
-    """Bytes of the parameters held for ``heads`` under ``precision`` (computed on the meta device)."""
+    """Bytes of the parameters held for ``heads`` under ``precision`` (counted on the meta device)."""
+    return _weight_bytes(model_config.to_json(), precision.mode, precision.storage, tuple(heads))
+
+
+@functools.lru_cache(maxsize=32)
+def _weight_bytes(config_json: str, mode: str, storage: torch.dtype, heads: tuple[str, ...]) -> int:
     with torch.device("meta"):
-        model = VGGT(model_config)
+        model = VGGT(VGGTModelConfig.from_dict(json.loads(config_json)))
+    storage_bytes = torch.empty(0, dtype=storage).element_size()
     total = 0
     for name, param in model.named_parameters():
         part = name.split(".", 1)[0]
         if part == "aggregator":
-            quantized = precision.mode == "int8" and param.ndim == 2 and name.endswith(".weight")
-            total += param.numel() * (1 if quantized else torch.empty(0, dtype=precision.storage).element_size())
+            quantized = mode == "int8" and param.ndim == 2 and name.endswith(".weight")
+            total += param.numel() * (1 if quantized else storage_bytes)
         elif part.removesuffix("_head") in heads:
             total += param.numel() * 4
     return total

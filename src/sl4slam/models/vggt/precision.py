@@ -16,6 +16,7 @@ Modes (``VGGTConfig.dtype``):
 
 from __future__ import annotations
 
+import gc
 import warnings
 from dataclasses import dataclass
 
@@ -80,6 +81,8 @@ def quantize_aggregator_int8(model: nn.Module) -> nn.Module:
         # torch.ao.quantization announces its move to torchao; the eager API still works.
         warnings.simplefilter("ignore")
         quantize_dynamic(model.aggregator, {nn.Linear: per_channel_dynamic_qconfig}, inplace=True)
+    # The replaced float32 layers sit in reference cycles: release their weights now.
+    gc.collect()
     return model
 
 
