@@ -1,21 +1,29 @@
-"""VGGT-1B forward cost: time and peak memory per forward for S frames at 518x294.
+"""VGGT-1B forward cost: time and peak memory per forward for S frames at 518x294, per precision mode.
 
 Full-size model (aggregator + camera head + depth head, as the SLAM frontend runs it) with random
 weights: the cost does not depend on the values. Every point runs in its own process so that its
 peak memory is its own:
 
-* CPU: float32; peak = the process's peak resident set size (weights included), and the resident
-  size right after the weights are in place, against the weights' own size (one copy).
-* CUDA: aggregator weights and compute in bf16 (fp16 where bf16 is unsupported) under autocast,
-  heads in float32 as in the released model; peak = ``torch.cuda.max_memory_allocated`` during
-  the forward (weights included). The VGGT authors' H100 table for the aggregator is printed
-  beside it: 8 frames 0.11 s / 3.23 GB, 20 frames 0.31 s / 5.58 GB, 50 frames 1.04 s / 11.41 GB.
+* CPU: peak = the process's peak resident set size during the forward (the high-water mark is
+  reset once the model is built), beside the resident size after the weights and the weights'
+  own size.
+* CUDA: peak = ``torch.cuda.max_memory_allocated`` during the forward (weights included), beside
+  the VGGT authors' H100 table for the aggregator (1/8/20/50/100 frames: 0.04/0.11/0.31/1.04/3.12 s,
+  1.88/3.23/5.58/11.41/21.15 GB).
 
-Also measured once (``--load-check``): process RSS after ``load_vggt`` of a full-size
-``.safetensors`` checkpoint, to show that loading keeps one copy of the weights.
+Each point also prints ``sl4slam.models.vggt.memory.estimate_peak_bytes``, what ``--max-memory``
+plans with. ``--dtypes`` picks the precision modes (fp32, bf16, fp16, int8; default the device's
+"auto"); ``--head-chunk`` the frames the dense heads decode at once.
 
-Usage: ``python benchmarks/bench_vggt.py [--device cpu|cuda] [--frames 1 2 4 8 17] [--repeats 3]
-[--load-check]``. Writes ``benchmarks/results/vggt.md`` (a section per device).
+``--compare`` (CPU): every mode of ``--dtypes`` built from the same float32 weights in one process,
+forwards interleaved, time ratios to fp32 and the max / median relative errors of depth,
+confidence and pose encoding against fp32. ``--frontend-submaps N``: per-submap wall time of
+``VGGTFrontend.reconstruct`` on ``--frames[0]`` random 640x480 frames. ``--load-check``: process
+RSS after ``load_vggt`` of a full-size ``.safetensors`` checkpoint (one copy of the weights).
+
+Usage: ``python benchmarks/bench_vggt.py [--device cpu|cuda] [--frames 1 4 8 16 32] [--dtypes fp32 int8]
+[--repeats 3] [--head-chunk 8] [--compare] [--frontend-submaps 5] [--load-check]``. Writes a section per
+device and mode set into ``benchmarks/results/vggt.md`` (``--out`` for another file).
 """
 
 from __future__ import annotations

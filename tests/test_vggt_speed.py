@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -12,7 +13,13 @@ from safetensors.torch import load_file
 from sl4slam.config import VGGTConfig
 from sl4slam.errors import UserError
 from sl4slam.frontend.vggt import VGGTFrontend
-from sl4slam.models.vggt.memory import GIB, estimate_peak_bytes, largest_fitting_frames, plan_memory, weight_bytes
+from sl4slam.models.vggt.memory import (
+    GIB,
+    estimate_peak_bytes,
+    largest_fitting_frames,
+    plan_memory,
+    weight_bytes,
+)
 from sl4slam.models.vggt.model import VGGT, VGGTModelConfig
 from sl4slam.models.vggt.precision import (
     apply_precision,
@@ -121,7 +128,7 @@ def test_weight_bytes_of_the_full_model():
 def test_memory_plan_picks_the_largest_chunk_that_fits():
     bf16 = resolve_precision("bf16", CPU)
     peaks = [estimate_peak_bytes(FULL, bf16, 16, 294, 518, chunk) for chunk in range(1, 9)]
-    assert all(a < b for a, b in zip(peaks, peaks[1:]))  # more frames at once, more memory
+    assert all(a < b for a, b in itertools.pairwise(peaks))  # more frames at once, more memory
     budget = (peaks[2] + peaks[3]) / 2 / GIB  # between chunk 3 and chunk 4
     plan = plan_memory(FULL, bf16, budget, 16, 294, 518)
     assert plan.head_chunk_frames == 3 and plan.estimated_peak_bytes == peaks[2]

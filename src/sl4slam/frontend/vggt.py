@@ -21,10 +21,15 @@ import torch
 
 from ..config import VGGTConfig
 from ..errors import UserError
-from ..models.vggt.memory import GIB, estimate_peak_bytes, largest_fitting_frames, plan_memory
+from ..models.vggt.memory import (
+    GIB,
+    estimate_peak_bytes,
+    largest_fitting_frames,
+    plan_memory,
+)
 from ..models.vggt.model import VGGT
-from ..models.vggt.precision import Precision, apply_precision, resolve_precision
 from ..models.vggt.pose_encoding import pose_encoding_to_extri_intri
+from ..models.vggt.precision import Precision, apply_precision, resolve_precision
 from ..models.vggt.preprocess import GridTransform, preprocess_images, to_uint8_rgb
 from ..types import Frame, SubmapPrediction
 

@@ -2,7 +2,7 @@
 
 The estimate adds up the tensors that are alive at the peak, each counted from its shape:
 
-* weights: the parameters in their storage dtype (int8 linears: 1 byte per weight);
+* weights: the parameters in their storage dtype (int8 linears: ``INT8_WEIGHT_BYTES`` per weight);
 * the aggregator: ``S`` frames of ``P = 1 + R + h*w`` tokens of width ``C``; inside a block the
   residual stream, its norm, q/k/v (and their rotated copies), the attention output and the MLP's
   hidden layer (``mlp_ratio * C``, before and after GELU) coexist: about ``AGGREGATOR_WIDTHS``
@@ -13,9 +13,10 @@ The estimate adds up the tensors that are alive at the peak, each counted from i
   about ``HEAD_MAPS`` such maps; the chunk's float32 copy of its kept tokens;
 * on CPU the interpreter and libraries (``CPU_RUNTIME_BYTES``).
 
-The two multipliers and the runtime are measured (``benchmarks/bench_vggt.py --rss``: the
-estimate is compared with the peak resident size for S = 1 ... 32 in every mode) and rounded up, so
-the estimate is an upper bound of the measured peaks.
+The multipliers and the runtime are set from measurements (``benchmarks/bench_vggt.py`` prints
+the estimate beside the measured peak: CPU resident size for S = 1 ... 16 in fp32, bf16 and int8,
+CUDA allocated memory for S = 1 ... 100 in bf16; ``benchmarks/results/vggt.md``) and rounded up:
+the estimate was above every measured peak, by 1-30 %.
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ AGGREGATOR_WIDTHS = 16.0
 HEAD_MAPS = 4.0
 #: Resident size of the interpreter, torch and this package on CPU before any weight (measured).
 CPU_RUNTIME_BYTES = 700 * 2**20
+#: Bytes per int8 linear weight as held by the quantized kernels (packed copy, offsets; measured).
+INT8_WEIGHT_BYTES = 1.25
 GIB = 2**30
 
 
@@ -54,7 +57,7 @@ def _weight_bytes(config_json: str, mode: str, storage: torch.dtype, heads: tupl
         part = name.split(".", 1)[0]
         if part == "aggregator":
             quantized = mode == "int8" and param.ndim == 2 and name.endswith(".weight")
-            total += param.numel() * (1 if quantized else storage_bytes)
+            total += int(param.numel() * (INT8_WEIGHT_BYTES if quantized else storage_bytes))
         elif part.removesuffix("_head") in heads:
             total += param.numel() * 4
     return total
