@@ -8,7 +8,8 @@ from __future__ import annotations
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-ORDER = ["pipeline", "accuracy", "ransac", "backend", "render", "retrieval_orb", "salad", "vggt", "localize", "export", "viewer"]
+ORDER = ["robustness", "submap_size", "accuracy", "upgrade", "failfast", "pipeline", "ransac", "backend", "evaluation",
+         "keyframe_graph", "render", "retrieval_orb", "salad", "vggt", "localize", "export", "viewer"]
 HEADER = """# Benchmarks
 
 Every figure below was measured by a script in `benchmarks/` (the command is given with each

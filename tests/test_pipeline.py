@@ -42,6 +42,7 @@ def make_config(backend: str = "sl4", retrieval: str = "orb", perspective: float
 
 
 _results: dict = {}
+_pipelines: dict = {}
 
 
 def run(world: Path, **kwargs):
@@ -50,6 +51,7 @@ def run(world: Path, **kwargs):
         config = make_config(**kwargs)
         pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
         _results[key] = pipeline.run(open_source(str(world)), progress=False)
+        _pipelines[key] = pipeline
     return _results[key]
 
 
@@ -90,6 +92,26 @@ def test_planar_shared_frame_falls_back_without_nan(world: Path) -> None:
     assert all("camera-constrained" in e.fallback and e.inlier_ratio > 0.95 for e in fallbacks)
     assert np.isfinite(result.T_world_cam).all() and np.isfinite(result.K).all()
     assert all(np.isfinite(H).all() and abs(np.linalg.det(H) - 1) < 1e-6 for H in result.H_world_submap.values())
+
+
+def test_metric_upgrade_that_cannot_be_estimated_keeps_the_map(world: Path, monkeypatch) -> None:
+    expected = run(world, backend="sl4")
+    pipeline = _pipelines[(("backend", "sl4"),)]
+
+    def broken(*args, **kwargs):
+        raise UserError("P_world[3] has a singular left 3x3 block (a camera at infinity)")
+
+    monkeypatch.setattr("sl4slam.upgrade.estimate_metric_upgrade", broken)
+    result = pipeline.result()
+    [summary] = result.stats["metric_upgrade"]
+    assert not summary["applied"] and "cannot be estimated" in summary["reason"] and "infinity" in summary["reason"]
+    assert len(result.keyframes) == len(expected.keyframes) and np.isfinite(result.T_world_cam).all()
+    # switched off: not even attempted
+    pipeline.config.upgrade.mode = "off"
+    try:
+        assert pipeline.result().stats["metric_upgrade"] == []
+    finally:
+        pipeline.config.upgrade.mode = "on"
 
 
 def test_run_is_deterministic(world: Path) -> None:

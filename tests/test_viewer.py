@@ -18,6 +18,7 @@ import pytest
 
 from browser import chromium_path, drawn_fraction, interrupt, launch
 from result_folders import write_known_result
+from sl4slam.backend import WorldEstimate
 from sl4slam.errors import UserError
 from sl4slam.outputs import keyframe_world_points
 from sl4slam.results import load_result
@@ -130,7 +131,8 @@ def _keyframes(count_per_submap: int = 2, submaps: int = 3, size=(24, 32)):
 
 def _pipeline(keyframes, estimates, edges=()):
     """What the live viewer reads of a running pipeline (colours are re-read through ``_colors``)."""
-    return SimpleNamespace(keyframes=keyframes, backend=SimpleNamespace(estimates=lambda: estimates), edges=list(edges),
+    backend = SimpleNamespace(estimates=lambda: estimates, world_estimate=lambda: WorldEstimate(dict(estimates)))
+    return SimpleNamespace(keyframes=keyframes, backend=backend, edges=list(edges),
                            num_frames=100, _colors=lambda k: np.full(k.shape + (3,), k.frame_index, np.uint8))
 
 

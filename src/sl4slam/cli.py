@@ -13,10 +13,10 @@ from __future__ import annotations
 import argparse
 import ast
 import dataclasses
+import functools
 import inspect
 import logging
 import sys
-import textwrap
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -27,13 +27,23 @@ from .errors import UserError
 
 log = logging.getLogger("sl4slam")
 
+@functools.lru_cache(maxsize=None)
+def _module_classes(filename: str) -> dict[str, ast.ClassDef]:
+    """Every class definition of a source file by name, parsed once (``inspect.getsource`` parses
+    the whole module again for each class: seconds for the CLI's dozens of config sections)."""
+    tree = ast.parse(Path(filename).read_text(encoding="utf-8"))
+    return {node.name: node for node in ast.walk(tree) if isinstance(node, ast.ClassDef)}
+
+
 def field_docs(cls: type) -> dict[str, str]:
     """Attribute docstrings (the string literal after each field) of a dataclass."""
     try:
-        tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
-    except (OSError, TypeError):
+        node = _module_classes(inspect.getsourcefile(cls) or "").get(cls.__name__)
+    except (OSError, TypeError, SyntaxError):
         return {}
-    body = tree.body[0].body  # type: ignore[attr-defined]
+    if node is None:
+        return {}
+    body = node.body
     docs = {}
     for node, following in zip(body, body[1:]):
         if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):

@@ -134,9 +134,11 @@ class AlignmentConfig(Section):
         "model": "--alignment", "min_points": "--alignment-min-points",
         "min_inlier_ratio": "--alignment-min-inlier-ratio", "max_condition": "--alignment-max-condition"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
-        "model": ("auto", "sl4", "sim3-points", "sim3-cameras"), "planar_model": ("auto", "calibration-scale", "camera-constrained")}
+        "model": ("auto", "sl4", "calibration", "hybrid", "sim3-points", "sim3-cameras"),
+        "planar_model": ("auto", "calibration-scale", "camera-constrained")}
     advanced: ClassVar[frozenset[str]] = frozenset({
-        "max_correspondences", "max_points", "max_refit_points", "planarity_threshold", "min_relief", "planar_model", "planar_support_margin",
+        "max_correspondences", "max_points", "max_refit_points", "planarity_threshold", "min_relief", "planar_model",
+        "planar_support_margin", "planar_fit_min_inlier_ratio", "hybrid_margin",
         "near_planar_threshold", "refit", "refit_candidates",
         "hypothesis_batch", "early_stop_spread", "preemptive_points", "preemptive_keep",
         "preemptive_min_keep", "refit_rounds", "refit_min_gain", "small_set",
@@ -146,8 +148,11 @@ class AlignmentConfig(Section):
     model: str = "auto"
     """What measures the relative transform: "sl4" (15-DOF DLT in RANSAC, the paper), "sim3-points"
     (7-DOF Umeyama in RANSAC on the same points), "sim3-cameras" (the shared frame's two cameras and
-    the median depth ratio), or "auto": "sl4" for the SL(4) graph, "sim3-cameras" for the Sim(3) one.
-    A Sim(3) graph needs a Sim(3) model."""
+    the median depth ratio), "calibration" (VGGT-SLAM 2.0: the shared frame's two cameras, their
+    intrinsics and the median depth ratio, no free projective terms; ``calibration_scale_link``),
+    "hybrid" (that link, or the 15-DOF fit where it explains the frame ``hybrid_margin`` times
+    better), or "auto": "sl4" for the SL(4) submap graph, "calibration" for the keyframe graph, "sim3-cameras"
+    for the Sim(3) graph. A Sim(3) graph needs a Sim(3) model."""
     ransac_iterations: int = 300
     """Most RANSAC hypotheses (paper: 300, always drawn in full there)."""
     ransac_confidence: float = 0.999
@@ -176,17 +181,30 @@ class AlignmentConfig(Section):
     distance to the camera) below which the 15-DOF fit is degenerate: VGGT's depth errors (AbsRel
     2-4 %, smooth) fake about that much structure on a flat floor, which RANSAC then turns into a
     projective error (benchmarks/bench_robustness.py). Rooms and desks seen from 1-3 m: 0.2-0.3."""
+    hybrid_margin: float = 4.0
+    """"hybrid" alignment: the 15-DOF fit replaces the calibration-and-scale link when the link's
+    median transfer error on the shared frame is more than this many times the fit's. Measured on the
+    synthetic world (benchmarks/bench_keyframe_graph.py): 1.2-3.8 under the vggt profile's depth warps,
+    4.3-16 under a relative perspective distortion of 0.1 (non-degenerate frames)."""
     planar_model: str = "auto"
     """What measures a degenerate shared frame: "calibration-scale" (its two cameras and depth
     ratio: VGGT-SLAM 2.0's link, immune to depth warps, blind to a relative projective
     distortion), "camera-constrained" (a projective fit whose free part the points choose), or
     "auto": both are measured and the link is kept unless the constrained fit explains
-    ``planar_support_margin`` times as many points (a real distortion the link cannot express)."""
-    planar_support_margin: float = 1.5
-    """"auto": how many times the link's inliers the camera-constrained fit must explain to win (as inlier ratios).
-    On the synthetic world the link explains 23-27 % of a floor frame's points under a 0.2
-    projective distortion (the constrained fit: all), and about as many as the constrained fit
-    under the vggt profile's depth warps (tests/test_edges.py, benchmarks/bench_robustness.py)."""
+    ``planar_support_margin`` times as many points and nearly all of them
+    (``planar_fit_min_inlier_ratio``: a real distortion the link cannot express)."""
+    planar_support_margin: float = 2.5
+    """"auto": how many times the link's inliers the camera-constrained fit must explain to win
+    (as inlier ratios). On the synthetic world's floor frames under a 0.2 projective distortion
+    the fit explains 3.7-4.3x the link's points (1.0 against 0.23-0.27; tests/test_pipeline.py);
+    under the vggt profile's smooth depth warps it explained 1.7x (0.91 against 0.55) and chose
+    the warp over the link, doubling the ATE (benchmarks/bench_robustness.py)."""
+    planar_fit_min_inlier_ratio: float = 0.97
+    """"auto": the camera-constrained fit wins only if it also explains at least this fraction of
+    the points, i.e. the frame really is a projective image of the other (synthetic floor frames
+    under a 0.2 distortion: 0.999-1.0). Under depth warps the fit explains more than the link but
+    not all: 0.91 under the vggt profile; under the hard profile such a fit bent the map by 1.5 m
+    where the link kept it at 0.33 m (benchmarks/bench_robustness.py)."""
     near_planar_threshold: float = 0.15
     """Below this planarity (but above ``planarity_threshold``) the shared frame is dominated by a
     plane, where RANSAC may settle on the plane and call the rest outliers (on the synthetic world:
@@ -250,7 +268,9 @@ class AlignmentConfig(Section):
         self._require("min_inliers", self.min_inliers >= 5, "at least 5 (one minimal sample)")
         self._require("planarity_threshold", 0 <= self.planarity_threshold < 1, "in [0, 1)")
         self._require("min_relief", 0 <= self.min_relief < 1, "in [0, 1)")
+        self._require("hybrid_margin", self.hybrid_margin >= 1, "at least 1")
         self._require("planar_support_margin", self.planar_support_margin >= 1, ">= 1")
+        self._require("planar_fit_min_inlier_ratio", 0 <= self.planar_fit_min_inlier_ratio <= 1, "in [0, 1]")
         self._require("near_planar_threshold", self.planarity_threshold <= self.near_planar_threshold <= 1,
                       "between --ransac-planarity-threshold and 1")
         self._require("seed", self.seed >= 0, ">= 0")
@@ -276,15 +296,25 @@ class BackendConfig(Section):
 
     section: ClassVar[str] = "backend"
     flag_prefix: ClassVar[str] = "backend-"
+    flag_names: ClassVar[dict[str, str]] = {"graph": "--graph"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
-        "kind": ("sl4", "sim3"), "loop_kernel": ("none", "huber", "cauchy"), "weighting": ("evidence", "fixed")}
+        "kind": ("sl4", "sim3"), "graph": ("submap", "keyframe"), "loop_kernel": ("none", "huber", "cauchy"),
+        "weighting": ("evidence", "fixed")}
     advanced: ClassVar[frozenset[str]] = frozenset({
         "prior_sigma", "loop_kernel", "loop_kernel_width", "effective_points", "min_sigma", "max_sigma",
         "segment_sigma", "relinearize_threshold", "wildfire_threshold", "loop_step_threshold",
-        "max_loop_iterations"})
+        "max_loop_iterations", "frame_sigma"})
 
     kind: str = "sl4"
     """"sl4" (15-DOF projective, the paper) or "sim3" (7-DOF similarity, for comparison)."""
+    graph: str = "submap"
+    """Graph design: "submap" (one node per submap, VGGT-SLAM) or "keyframe" (one SL(4) node per
+    keyframe with rigid links inside a submap, VGGT-SLAM 2.0; ``sl4slam.backend.keyframe``). The
+    keyframe graph needs ``kind`` "sl4"."""
+    frame_sigma: float = 0.05
+    """Keyframe graph: isotropic sigma (SL(4) tangent units) of the link between consecutive
+    keyframes of a submap, their relative pose from the frontend (reference code: 0.05; the
+    frontend reports no per-camera uncertainty to weigh it by)."""
     weighting: str = "evidence"
     """Noise of each edge: "evidence" (information from the alignment's own inliers, residuals and
     point spread; see ``sl4slam.backend.evidence``) or "fixed" (one isotropic ``sigma`` for every
@@ -304,11 +334,13 @@ class BackendConfig(Section):
     reach the graph; see the [loops] settings)."""
     loop_kernel_width: float = 1.0
     """Width of the robust kernel, in whitened residual units."""
-    effective_points: float = 200.0
+    effective_points: float = 20.0
     """Evidence weighting: the alignment residuals of dense points are spatially correlated (the
     model errs in smooth blobs, not per pixel), so an edge counts at most this many independent
     points however many pixels it aligned. Calibrated on the synthetic world under the vggt
-    simulator profile (benchmarks/bench_robustness.py)."""
+    simulator profile: with 200, true loops disagreed with the map by chi-square 105-140 (> 37.7,
+    rejected) because the odometry edges claimed too much certainty; with 20 they are accepted
+    while false loops still score 2e3-9e4 (benchmarks/bench_robustness.py)."""
     min_sigma: float = 1e-3
     """Evidence weighting: smallest sigma of any edge direction (tangent units); no edge is more
     certain than this, whatever its point count."""
@@ -334,7 +366,7 @@ class BackendConfig(Section):
     def validate(self) -> None:
         super().validate()
         for name in ("sigma", "prior_sigma", "loop_kernel_width", "effective_points", "min_sigma", "max_sigma",
-                     "segment_sigma", "relinearize_threshold", "loop_step_threshold"):
+                     "segment_sigma", "relinearize_threshold", "loop_step_threshold", "frame_sigma"):
             self._require(name, getattr(self, name) > 0, "a positive number")
         self._require("fallback_sigma_scale", self.fallback_sigma_scale >= 1, "at least 1")
         self._require("max_sigma", self.min_sigma <= self.max_sigma <= 1000 * self.min_sigma,
@@ -343,6 +375,10 @@ class BackendConfig(Section):
                       f"at most 1000 times --backend-min-sigma ({1000 * self.min_sigma})")
         self._require("wildfire_threshold", self.wildfire_threshold >= 0, ">= 0")
         self._require("max_loop_iterations", self.max_loop_iterations >= 0, ">= 0")
+        self._require("frame_sigma", self.frame_sigma <= 1000 * self.min_sigma,
+                      f"at most 1000 times --backend-min-sigma ({1000 * self.min_sigma})")
+        self._require("graph", self.graph == "submap" or self.kind == "sl4",
+                      "submap with --backend sim3 (the keyframe graph is an SL(4) graph)")
 
 
 @dataclass
@@ -405,6 +441,7 @@ class LoopConfig(Section):
 
     section: ClassVar[str] = "loops"
     flag_prefix: ClassVar[str] = "loop-"
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {"verify_attention": ("auto", "on", "off")}
     advanced: ClassVar[frozenset[str]] = frozenset({
         "check_points", "depth_tolerance", "min_overlap", "min_consistent", "min_correlation",
         "consistency_quantile"})
@@ -412,6 +449,13 @@ class LoopConfig(Section):
     min_inlier_ratio: float = 0.3
     """The loop frame's own alignment (its points in the old and the new submap) must keep this
     inlier fraction (or half the odometry's median, if that is lower) without a fallback."""
+    verify_attention: str = "auto"
+    """Check, before anything else, that the frontend's attention says the query keyframe and the loop
+    frame overlap (VGGT-SLAM 2.0's image-match ratio, ``sl4slam.models.vggt.attention``; the simulated
+    frontend's stand-in is the true overlap, ``sl4slam.frontend.overlap``): "on", "off", or "auto"
+    (on with the keyframe graph, as in VGGT-SLAM 2.0; off with the submap graph, as in VGGT-SLAM)."""
+    min_match_ratio: float = 0.85
+    """Attention check: image-match ratio from which a loop is kept (VGGT-SLAM 2.0 reference code: 0.85)."""
     verify_view: bool = True
     """Check inside the new submap that the query keyframe and the loop frame see the same surfaces:
     the loop frame's points, projected into the query keyframe, must land in its image, agree with
@@ -445,6 +489,7 @@ class LoopConfig(Section):
         self._require("min_consistent", 0 <= self.min_consistent <= 1, "in [0, 1]")
         self._require("min_correlation", -1 <= self.min_correlation <= 1, "in [-1, 1]")
         self._require("consistency_quantile", 0 < self.consistency_quantile < 1, "in (0, 1)")
+        self._require("min_match_ratio", self.min_match_ratio >= 0, ">= 0")
 
 
 SIM_PROFILES = ("exact", "vggt", "hard")
@@ -669,7 +714,7 @@ class VGGTConfig(Section):
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
         "dtype": ("auto", "fp32", "bf16", "fp16", "int8"), "preprocess_mode": ("crop", "pad")}
     flag_names: ClassVar[dict[str, str]] = {"max_memory_gb": "--max-memory"}
-    advanced: ClassVar[frozenset[str]] = frozenset({"head_chunk_frames"})
+    advanced: ClassVar[frozenset[str]] = frozenset({"match_layer", "head_chunk_frames"})
 
     weights: str = "facebook/VGGT-1B"
     """Local ``.pt`` / ``.safetensors`` file or Hugging Face hub id (model.pt)."""
@@ -686,10 +731,14 @@ class VGGTConfig(Section):
     limit. Picks the dense heads' chunk size per submap and refuses a submap that cannot fit."""
     head_chunk_frames: int = 8
     """Frames the dense heads decode at once (reference VGGT: 8); the most --max-memory may pick."""
+    match_layer: int = 21
+    """Global-attention block (0-based) whose attention gives the loop check's image-match ratio
+    (VGGT-SLAM 2.0: 21, the 22nd of VGGT-1B's 24; ``sl4slam.models.vggt.attention``)."""
 
     def validate(self) -> None:
         super().validate()
         self._require("weights", bool(self.weights.strip()), "a file path or a Hugging Face hub id")
+        self._require("match_layer", self.match_layer >= 0, ">= 0")
         device_ok = self.device in ("auto", "cpu", "cuda") or (
             self.device.startswith("cuda:") and self.device[5:].isdigit())
         self._require("device", device_ok, "auto, cpu, cuda or cuda:N")
@@ -849,8 +898,8 @@ class SLAMConfig(Section):
         for section in sections(self):
             section.validate()
         model = alignment_model(self)
-        if self.backend.kind == "sim3" and model == "sl4":
-            raise UserError("--alignment sl4 measures projective transforms, which a Sim(3) graph cannot hold; "
+        if self.backend.kind == "sim3" and model in ("sl4", "calibration", "hybrid"):
+            raise UserError(f"--alignment {model} measures projective transforms, which a Sim(3) graph cannot hold; "
                             "use --alignment sim3-points or sim3-cameras with --backend sim3")
 
 
@@ -863,7 +912,16 @@ def alignment_model(config: SLAMConfig) -> str:
     """The alignment model a run uses ("auto" resolved from the graph's group)."""
     if config.alignment.model != "auto":
         return config.alignment.model
-    return "sl4" if config.backend.kind == "sl4" else "sim3-cameras"
+    if config.backend.kind == "sim3":
+        return "sim3-cameras"
+    return "calibration" if config.backend.graph == "keyframe" else "sl4"
+
+
+def attention_check(config: SLAMConfig) -> bool:
+    """Whether loops pass the attention check ("auto" resolved from the graph design)."""
+    if config.loops.verify_attention != "auto":
+        return config.loops.verify_attention == "on"
+    return config.backend.graph == "keyframe"
 
 
 def config_to_dict(config: Any) -> dict:

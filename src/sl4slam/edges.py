@@ -25,7 +25,8 @@ class EdgeReport:
         kind: "odometry", "loop" or "segment" (a submap that starts a new map segment).
         submap_from, submap_to: the older and the newer submap.
         frame_index: the frame whose two reconstructions were aligned (the shared frame, or the loop frame).
-        model: the model that measured it ("sl4", "sim3", or "" when nothing was measured).
+        model: the model that measured it ("sl4", "calibration" for the calibration-and-scale link
+            of the frame's cameras (an SL(4) map), "sim3", or "" when nothing was measured).
         inlier_ratio, rms, num_points: the alignment's quality (0 when nothing was measured).
         fallback: why a weaker model replaced the requested one, or ``None``.
         query_frame: for loops, the new keyframe that retrieval matched with ``frame_index``.
@@ -49,7 +50,8 @@ class EdgeReport:
 
     @classmethod
     def measured(cls, kind: str, a: int, b: int, frame_index: int, alignment: Alignment, **kwargs) -> "EdgeReport":
-        return cls(kind=kind, submap_from=a, submap_to=b, frame_index=frame_index, model=alignment.model,
+        model = "calibration" if alignment.extras.get("method") == "calibration_scale" else alignment.model
+        return cls(kind=kind, submap_from=a, submap_to=b, frame_index=frame_index, model=model,
                    inlier_ratio=float(alignment.inlier_ratio), rms=float(alignment.rms),
                    num_points=int(alignment.inliers.size), fallback=alignment.fallback, **kwargs)
 
@@ -80,13 +82,19 @@ def camera_problem(view: FrameView) -> str | None:
     return None
 
 
+def is_camera_link(alignment: Alignment) -> bool:
+    """Whether an edge was measured by the frame's cameras and depth ratio (the calibration-and-scale
+    link or the shared-frame similarity), not by a point fit."""
+    return alignment.extras.get("method") in ("calibration_scale", "shared_frame")
+
+
 def edge_problem(alignment: Alignment, config: AlignmentConfig, fitted: bool = True) -> str | None:
     """Why a measured edge must not reach the graph, or ``None``.
 
     Every edge: finite, orientation-preserving (det > 0: a projective map with det < 0 has no
-    SL(4) representative), condition number at most ``config.max_condition``. A fitted edge (not
-    the camera edge) also needs ``config.min_inliers`` inliers and ``config.min_inlier_ratio`` of
-    the points.
+    SL(4) representative), condition number at most ``config.max_condition``. A fitted edge (not a
+    camera link, :func:`is_camera_link`) also needs ``config.min_inliers`` inliers and
+    ``config.min_inlier_ratio`` of the points.
     """
     H = np.asarray(alignment.H, dtype=np.float64)
     if H.shape != (4, 4) or not np.isfinite(H).all():
@@ -97,7 +105,7 @@ def edge_problem(alignment: Alignment, config: AlignmentConfig, fitted: bool = T
     condition = np.linalg.cond(H)
     if not condition <= config.max_condition:
         return f"the measured transform is ill-conditioned (condition number {condition:.3g} > {config.max_condition:.3g})"
-    if fitted:
+    if fitted and not is_camera_link(alignment):
         count = alignment.num_inliers
         if count < config.min_inliers:
             return f"only {count} inliers (< {config.min_inliers})"

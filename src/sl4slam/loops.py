@@ -4,9 +4,15 @@ A retrieved loop frame is re-reconstructed inside the new submap next to the que
 retrieval matched it with; its points there and its stored points in its old submap give the loop
 measurement ``H_old_new``. That alignment alone cannot tell a wrong place: it compares two
 reconstructions of the *same image*, which agree (inlier ratios near 1) whatever the model made of
-the place. Three independent checks therefore stand between a candidate and the graph, each with a
+the place. Independent checks therefore stand between a candidate and the graph, each with a
 reason the run summary lists:
 
+0. **Attention** (VGGT-SLAM 2.0; ``LoopConfig.verify_attention``). The frontend, given the query
+   keyframe and the loop frame together, scores how strongly the second image's tokens attend to
+   the first's (``sl4slam.models.vggt.attention``; with the simulated frontend a stand-in computed
+   from the true overlap, ``sl4slam.frontend.overlap``); below ``min_match_ratio`` the images are
+   taken not to overlap. A frontend that gave no score (a replayed cache recorded without the check)
+   skips this check, which the decision's figures show by the missing ``match_ratio``.
 1. **Alignment.** The loop frame's two reconstructions must align with the model the graph uses
    (a constrained model of that group for a degenerate frame, never a weaker stand-in), a point fit
    keeping ``LoopConfig.min_inlier_ratio`` of the points (or half the odometry's median, when the
@@ -36,7 +42,7 @@ import numpy as np
 
 from .backend import Backend
 from .config import AlignmentConfig, LoopConfig
-from .edges import edge_problem
+from .edges import edge_problem, is_camera_link
 from .types import Aligner, Alignment, FrameView
 
 BLUR_FRACTION = 0.01
@@ -153,6 +159,7 @@ class LoopEvidence:
         grey_new: ``(H, W)`` its grey image for the view check (:func:`grey_for_check`).
         query_depth, query_mask, query_grey: ``(H, W)`` the query keyframe in the new submap.
         query_K, query_T_cam_submap: its camera there.
+        match_ratio: the frontend's image-match ratio of (query keyframe, loop frame), or ``None``.
     """
 
     old: FrameView
@@ -163,25 +170,28 @@ class LoopEvidence:
     query_grey: np.ndarray
     query_K: np.ndarray
     query_T_cam_submap: np.ndarray
+    match_ratio: float | None = None
 
 
 class LoopVerifier:
-    """Runs the three checks of the module docstring on a candidate.
+    """Runs the checks of the module docstring on a candidate.
 
     Args:
         config: the ``[loops]`` settings; alignment_config: the edge checks' thresholds.
         aligner: the alignment stage (its model must match the graph's group).
         backend: the graph, for the consistency check.
         information: ``alignment -> (dim, dim)`` information of an edge (``sl4slam.backend.evidence``).
+        attention: run the attention check (``sl4slam.config.attention_check`` resolves the setting).
     """
 
     def __init__(self, config: LoopConfig, alignment_config: AlignmentConfig, aligner: Aligner, backend: Backend,
-                 information: Callable[[Alignment], np.ndarray]) -> None:
+                 information: Callable[[Alignment], np.ndarray], attention: bool = False) -> None:
         self.config = config
         self.alignment_config = alignment_config
         self.aligner = aligner
         self.backend = backend
         self.information = information
+        self.attention = bool(attention)
         self.threshold = chi2_threshold(config, backend.dim)
 
     def inlier_gate(self, odometry_ratios: Sequence[float]) -> float:
@@ -192,16 +202,24 @@ class LoopVerifier:
         return min(gate, 0.5 * float(np.median(odometry_ratios))) if len(odometry_ratios) else gate
 
     def verify(self, old_submap: int, new_submap: int, evidence: LoopEvidence, odometry_ratios: Sequence[float],
-               seed: int) -> LoopDecision:
-        """The verdict on a loop between ``old_submap`` and ``new_submap`` (whose node is in the graph)."""
+               seed: int, frames: tuple[int, int] | None = None) -> LoopDecision:
+        """The verdict on a loop between ``old_submap`` and ``new_submap`` (which is in the graph);
+        ``frames``: the (loop frame, query keyframe) whose nodes a keyframe graph ties."""
+        checks: dict = {}
+        if self.attention and evidence.match_ratio is not None:
+            checks["match_ratio"] = evidence.match_ratio
+            if not evidence.match_ratio >= self.config.min_match_ratio:
+                return LoopDecision(False, f"the frontend's attention says the images do not overlap "
+                                           f"(match ratio {evidence.match_ratio:.2f} < {self.config.min_match_ratio})",
+                                    checks=checks)
         try:
             alignment = self.aligner.align(evidence.old, evidence.new, seed=seed)
         except ValueError as exc:
-            return LoopDecision(False, f"the loop frame's alignment failed: {exc}")
-        checks = {"inlier_ratio": alignment.inlier_ratio}
+            return LoopDecision(False, f"the loop frame's alignment failed: {exc}", checks=checks)
+        checks["inlier_ratio"] = alignment.inlier_ratio
         gate = self.inlier_gate(odometry_ratios)
-        camera_link = alignment.extras.get("method") in ("calibration_scale", "shared_frame")
-        problem = edge_problem(alignment, self.alignment_config, fitted=not camera_link)
+        camera_link = is_camera_link(alignment)
+        problem = edge_problem(alignment, self.alignment_config)
         if alignment.model != self.aligner.group:
             problem = f"the loop frame's alignment fell back to a weaker model ({alignment.fallback})"
         elif problem is None and not camera_link and alignment.inlier_ratio < gate:
@@ -222,7 +240,7 @@ class LoopVerifier:
                 return LoopDecision(False, problem, alignment, checks=checks)
         information = self.information(alignment)
         if self.config.verify_graph:
-            distance = self.backend.loop_chi2(old_submap, new_submap, alignment.H, information)
+            distance = self.backend.loop_chi2(old_submap, new_submap, alignment.H, information, frames=frames)
             checks["chi2"] = distance
             if not distance <= self.threshold:
                 return LoopDecision(False, f"it disagrees with the map (chi-square {distance:.3g} > {self.threshold:.3g})",

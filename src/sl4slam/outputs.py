@@ -75,7 +75,7 @@ def write_map_and_keyframes(result: SLAMResult, out_dir: Path, max_points: int, 
         keyframe_dir.mkdir(parents=True, exist_ok=True)
     chunks_xyz, chunks_rgb = [], []
     for index, keyframe in enumerate(result.keyframes):
-        X, valid = keyframe_world_points(keyframe, result.H_world_submap[keyframe.submap_id])
+        X, valid = keyframe_world_points(keyframe, result.H_world(keyframe))
         colors = result.keyframe_colors(keyframe)
         if keyframe_dir is not None:
             _write_keyframe(keyframe_dir, keyframe, X, valid, colors, result, index)

@@ -1,9 +1,15 @@
 """The orchestrator: frames -> keyframes -> submaps -> alignment -> factor graph -> poses and map.
 
 It is given its stages and talks to each through its interface only (``sl4slam.types``): the
-frontend (VGGT, the simulator, a replayed cache), retrieval (SALAD, ORB, none), the aligner (SL(4)
-or Sim(3)), the backend (the SL(4) or Sim(3) graph) and the loop verifier. ``process_submap`` reads
-as the list of steps of one submap; each step is a method below it. See docs/architecture.md.
+frontend (VGGT, the simulator, a replayed cache), retrieval (SALAD, ORB, none), the aligner (SL(4),
+calibration-and-scale or Sim(3)), the backend (the submap graph in SL(4) or Sim(3), or the keyframe
+graph) and the loop verifier. ``process_submap`` reads as the list of steps of one submap; each step
+is a method below it. See docs/architecture.md.
+
+Both graph designs get the same calls: measurements in submap coordinates, with the submap's
+keyframes and extrinsics (``SubmapFrames``) and each loop's two frames, which the keyframe graph
+uses to place them between keyframe nodes; both return a ``WorldEstimate`` with, for the keyframe
+graph, a transform per keyframe.
 
 Nothing that goes wrong inside a submap ends a run:
 
@@ -30,9 +36,9 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .alignment import make_aligner
-from .backend import Backend, BackendUpdateError, make_backend
+from .backend import Backend, BackendUpdateError, SubmapFrames, WorldEstimate, make_backend
 from .backend.evidence import edge_information
-from .config import SLAMConfig
+from .config import SLAMConfig, attention_check
 from .edges import EdgeReport, camera_problem, edge_problem
 from .errors import UserError
 from .geometry import decompose_projection, normalize_sl4, to_4x4
@@ -108,13 +114,15 @@ class SLAMResult:
         T_world_cam: ``(N, 4, 4)`` keyframe poses (world-from-camera, rigid part of the decomposed
             camera; world units are the first submap's).
         K: ``(N, 3, 3)`` keyframe intrinsics decomposed from the world camera matrices.
-        H_world_submap: graph nodes (optimized by the final polish, or iSAM2's current estimate
-            for a snapshot).
+        H_world_submap: where each submap sits in the world (the submap graph's nodes; optimized by
+            the final polish, or iSAM2's current estimate for a snapshot).
         T_world_cam_gt: ``(N, 4, 4)`` ground truth for the keyframes, or ``None``.
         edges: every odometry, loop (accepted or rejected) and segment record.
         segments: ``(N,)`` int, the map segment of each keyframe (0 unless a segment started).
         stats: counts and timings for the summary.
         colors: ``keyframe -> (H, W, 3)`` uint8 colours on the prediction grid (re-read from the source).
+        H_world_keyframe: ``{frame_index: (4, 4)}`` for graphs with a node per keyframe: maps the
+            keyframe's submap points into the world through its own node (use :meth:`H_world`).
     """
 
     keyframes: list[StoredKeyframe]
@@ -126,6 +134,12 @@ class SLAMResult:
     segments: np.ndarray
     stats: dict = field(default_factory=dict)
     colors: Callable[[StoredKeyframe], np.ndarray] | None = None
+    H_world_keyframe: dict[int, np.ndarray] = field(default_factory=dict)
+
+    def H_world(self, keyframe: StoredKeyframe) -> np.ndarray:
+        """``(4, 4)`` map from ``keyframe``'s submap points to the world (its own node, else its submap's)."""
+        H = self.H_world_keyframe.get(keyframe.frame_index)
+        return H if H is not None else self.H_world_submap[keyframe.submap_id]
 
     @property
     def timestamps(self) -> np.ndarray:
@@ -176,7 +190,8 @@ class SLAMPipeline:
         if self.aligner.group == "sl4" and self.backend.kind != "sl4":
             raise UserError(f"the {self.aligner.model} aligner measures projective transforms, which a "
                             f"{self.backend.kind} graph cannot hold; use a Sim(3) alignment model")
-        self.loop_verifier = LoopVerifier(config.loops, config.alignment, self.aligner, self.backend, self.edge_information)
+        self.loop_verifier = LoopVerifier(config.loops, config.alignment, self.aligner, self.backend, self.edge_information,
+                                          attention=attention_check(config))
         self.selector = KeyframeSelector(config.keyframes)
         self.on_submap = on_submap
         self.keyframes: list[StoredKeyframe] = []
@@ -271,7 +286,7 @@ class SLAMPipeline:
             with timer("alignment"):
                 odometry = self.align_odometry(work, dense)
             with timer("backend"):
-                self.add_to_graph(work, odometry)
+                self.add_to_graph(work, dense, odometry)
             with timer("loops"):
                 self.close_loops(work, dense)
             with timer("store"):
@@ -303,8 +318,10 @@ class SLAMPipeline:
 
     def reconstruct(self, work: SubmapInput) -> SubmapPrediction | None:
         """The frontend's prediction, or ``None`` when it fails on this submap (see the module doc)."""
+        pairs = self._match_pairs(work)
         try:
-            prediction = self.frontend.reconstruct(work.frames, work.submap_id)
+            # only frontends asked for attention scores need to know the keyword
+            prediction = self.frontend.reconstruct(work.frames, work.submap_id, **({"match_pairs": pairs} if pairs else {}))
             problem = prediction_problem(prediction, len(work.frames))
         except (KeyboardInterrupt, SystemExit):
             raise
@@ -363,11 +380,13 @@ class SLAMPipeline:
         edge.fallback = f"alignment failed ({problem}); used the shared frame's cameras and depth"
         return edge
 
-    def add_to_graph(self, work: SubmapInput, odometry: Alignment | str | None) -> None:
-        """Add the submap's node with its odometry edge, or as the start of a new map segment."""
+    def add_to_graph(self, work: SubmapInput, dense: DenseSubmap, odometry: Alignment | str | None) -> None:
+        """Add the submap (its node, or its keyframes' nodes) with its odometry edge, or as the start
+        of a new map segment."""
         submap_id = work.submap_id
+        frames = self._submap_frames(work, dense)
         if odometry is None and self.backend.num_submaps == 0:
-            self.backend.add_submap(submap_id, None)
+            self.backend.add_submap(submap_id, None, frames=frames)
             self.backend.update()
             return
         relative = np.eye(4)  # where a new segment starts relative to the last node, without a measurement
@@ -377,7 +396,7 @@ class SLAMPipeline:
             if odometry.fallback:
                 log.info("submap %d->%d: %s", previous, submap_id, odometry.fallback)
             relative = self._graph_measurement(odometry.H)
-            self.backend.add_submap(submap_id, relative, self.edge_information(odometry))
+            self.backend.add_submap(submap_id, relative, self.edge_information(odometry), frames=frames)
             try:
                 self.backend.update()
                 return
@@ -385,7 +404,7 @@ class SLAMPipeline:
                 odometry = f"the graph could not be solved with this edge ({exc})"
                 self.edges[-1].accepted, self.edges[-1].reason = False, odometry
         reason = odometry if isinstance(odometry, str) else "no shared frame with an earlier submap"
-        self._start_segment(submap_id, reason, relative)
+        self._start_segment(submap_id, reason, relative, frames)
 
     def close_loops(self, work: SubmapInput, dense: DenseSubmap) -> None:
         """Verify every loop candidate (``sl4slam.loops``) and add the accepted ones to the graph."""
@@ -393,10 +412,11 @@ class SLAMPipeline:
         added: list[EdgeReport] = []
         for k, candidate in enumerate(work.loops):
             old = self._by_frame[candidate.match_frame]
+            tie = (candidate.match_frame, candidate.query_frame)  # the keyframes whose nodes the loop joins
             try:
                 evidence = self._loop_evidence(work, dense, candidate, k)
                 decision = self.loop_verifier.verify(old.submap_id, work.submap_id, evidence, odometry_ratios,
-                                                     seed=work.submap_id * 1000 + k + 1)
+                                                     seed=work.submap_id * 1000 + k + 1, frames=tie)
             except (KeyboardInterrupt, SystemExit):
                 raise
             except Exception as exc:  # a loop never ends a run
@@ -410,7 +430,7 @@ class SLAMPipeline:
             self.edges.append(report)
             added.append(report)
             self.backend.add_loop(old.submap_id, work.submap_id, self._graph_measurement(decision.alignment.H),
-                                  decision.information)
+                                  decision.information, frames=tie)
         if added:
             try:
                 self.backend.update()
@@ -438,14 +458,27 @@ class SLAMPipeline:
         """Information matrix of an edge measured by ``alignment`` (``sl4slam.backend.evidence``)."""
         return edge_information(alignment, self.backend.generators(), self.config.backend)
 
+    def _submap_frames(self, work: SubmapInput, dense: DenseSubmap) -> SubmapFrames:
+        """The submap's shared frame (when it has one) and new keyframes with their extrinsics."""
+        slots = ([0] if work.first_new else []) + list(work.new_slots)
+        T = np.stack([to_4x4(dense.prediction.T_cam_submap[slot]) for slot in slots])
+        return SubmapFrames(tuple(work.frames[slot].index for slot in slots), T, shared=bool(work.first_new))
+
+    def _match_pairs(self, work: SubmapInput) -> list[tuple[int, int]]:
+        """``(query keyframe slot, loop frame slot)`` of every loop candidate, when the loop check reads
+        the frontend's attention (the query first, as in VGGT-SLAM 2.0)."""
+        if not self.loop_verifier.attention:
+            return []
+        return [(work.slot_of(c.query_frame), work.loop_slot(k)) for k, c in enumerate(work.loops)]
+
     def _graph_measurement(self, H: np.ndarray) -> np.ndarray:
         return normalize_sl4(H) if self.backend.kind == "sl4" else H
 
-    def _start_segment(self, submap_id: int, reason: str, relative: np.ndarray) -> None:
-        """Add the node with a weak prior at ``H_world_last @ relative`` (the rejected measurement
-        when it was usable, else the last node's frame)."""
+    def _start_segment(self, submap_id: int, reason: str, relative: np.ndarray, frames: SubmapFrames) -> None:
+        """Add the submap with a weak prior at ``H_world_last @ relative`` (the rejected measurement
+        when it was usable, else the last submap's frame)."""
         last = self.keyframes[-1].submap_id
-        self.backend.start_segment(submap_id, self.backend.H_world_submap(last) @ relative)
+        self.backend.start_segment(submap_id, self.backend.H_world_submap(last) @ relative, frames=frames)
         self.backend.update()
         self.edges.append(EdgeReport(kind="segment", submap_from=last, submap_to=submap_id,
                                      frame_index=self._prior.index if self._prior is not None else -1,
@@ -459,7 +492,8 @@ class SLAMPipeline:
             old=self._by_frame[candidate.match_frame].view(), new=dense.views[slot],
             grey_new=grey_for_check(prediction.colors[slot]), query_depth=prediction.depth[query],
             query_mask=dense.mask[query], query_grey=grey_for_check(prediction.colors[query]),
-            query_K=prediction.K[query], query_T_cam_submap=to_4x4(prediction.T_cam_submap[query]))
+            query_K=prediction.K[query], query_T_cam_submap=to_4x4(prediction.T_cam_submap[query]),
+            match_ratio=recorded_match_ratio(prediction, query, slot))
 
     def _reject_loop(self, candidate: LoopCandidate, submap_id: int, reason: str, alignment: Alignment | None = None,
                      checks: dict | None = None) -> None:
@@ -469,7 +503,7 @@ class SLAMPipeline:
                                          query_frame=candidate.query_frame, accepted=False, reason=reason, checks=checks or {})
         else:
             report = EdgeReport(kind="loop", submap_from=old, submap_to=submap_id, frame_index=candidate.match_frame,
-                                query_frame=candidate.query_frame, accepted=False, reason=reason)
+                                query_frame=candidate.query_frame, accepted=False, reason=reason, checks=checks or {})
         self.edges.append(report)
         log.info("loop %d->%d rejected: %s", old, submap_id, reason)
 
@@ -487,10 +521,10 @@ class SLAMPipeline:
         (``final_estimates``: a batch polish of the whole graph, O(submaps), so call it at the end),
         upgraded to a metric frame when ``config.upgrade`` allows (``sl4slam.upgrade``)."""
         start = time.perf_counter()
-        H_world_submap = self.backend.final_estimates()
+        world = self.backend.world_estimate(final=True)
         optimized = time.perf_counter()
-        H_world_submap, upgrades = self.metric_upgrade(H_world_submap)
-        result = self._result(H_world_submap)
+        world, upgrades = self.metric_upgrade(world)
+        result = self._result(world)
         result.stats["seconds_final_optimization"] = round(optimized - start, 5)
         result.stats["metric_upgrade"] = upgrades
         return result
@@ -498,37 +532,50 @@ class SLAMPipeline:
     def snapshot(self, metric_upgrade: bool = False) -> SLAMResult:
         """The result under iSAM2's current estimate (no polish): for checkpoints and live viewers;
         ``metric_upgrade`` also upgrades it (about 0.1 s for 500 keyframes)."""
-        H_world_submap = self.backend.estimates()
+        world = self.backend.world_estimate()
         if metric_upgrade:
-            H_world_submap, _ = self.metric_upgrade(H_world_submap)
-        return self._result(H_world_submap)
+            world, _ = self.metric_upgrade(world)
+        return self._result(world)
 
-    def metric_upgrade(self, H_world_submap: dict[int, np.ndarray]) -> tuple[dict[int, np.ndarray], list[dict]]:
+    def metric_upgrade(self, world: WorldEstimate) -> tuple[WorldEstimate, list[dict]]:
         """Upgrade each map segment to a metric frame (one ``H_metric_world`` per segment, applied to
-        its nodes: every pose and map point follows). Returns the nodes and one summary per segment."""
+        its submaps' and keyframes' transforms: every pose and map point follows). Returns the
+        upgraded estimate and one summary per segment."""
         from .upgrade import estimate_metric_upgrade
 
+        H_world_submap, H_world_keyframe = world.H_world_submap, world.H_world_keyframe
         keyframes = [k for k in self.keyframes if k.submap_id in H_world_submap]
-        if not keyframes:
-            return H_world_submap, []
+        if not keyframes or self.config.upgrade.mode == "off":
+            return world, []
         starts = self.backend.segments
         segment_of = np.searchsorted(starts, [k.submap_id for k in keyframes], side="right") - 1
-        nodes, summaries = dict(H_world_submap), []
+        upgraded, summaries = WorldEstimate(dict(H_world_submap), dict(H_world_keyframe)), []
         for segment in np.unique(segment_of):
             members = [k for k, s in zip(keyframes, segment_of) if s == segment]
-            P = world_cameras(members, H_world_submap)
-            upgrade = estimate_metric_upgrade(P, np.stack([k.principal_point for k in members]), self.config.upgrade,
-                                              image_sizes=np.array([k.shape[::-1] for k in members]))
+            P = world_cameras(members, H_world_submap, H_world_keyframe)
+            try:
+                upgrade = estimate_metric_upgrade(P, np.stack([k.principal_point for k in members]), self.config.upgrade,
+                                                  image_sizes=np.array([k.shape[::-1] for k in members]))
+            except (UserError, ValueError, np.linalg.LinAlgError) as exc:
+                # e.g. a camera at infinity in a broken map: the map is kept as it is, never lost
+                summaries.append({"segment": int(segment), "applied": False, "reason": f"cannot be estimated: {exc}"})
+                log.warning("metric upgrade of segment %d skipped: %s", segment, exc)
+                continue
             summaries.append({"segment": int(segment), **upgrade.summary()})
             if upgrade.applied:
                 for submap_id in {k.submap_id for k in members}:
-                    nodes[submap_id] = upgrade.H_metric_world @ H_world_submap[submap_id]
+                    upgraded.H_world_submap[submap_id] = upgrade.H_metric_world @ H_world_submap[submap_id]
+                for keyframe in members:
+                    if keyframe.frame_index in H_world_keyframe:
+                        upgraded.H_world_keyframe[keyframe.frame_index] = (
+                            upgrade.H_metric_world @ H_world_keyframe[keyframe.frame_index])
             log.info("metric upgrade of segment %d: %s", segment, upgrade.reason)
-        return nodes, summaries
+        return upgraded, summaries
 
-    def _result(self, H_world_submap: dict[int, np.ndarray]) -> SLAMResult:
+    def _result(self, world: WorldEstimate) -> SLAMResult:
+        H_world_submap = world.H_world_submap
         keyframes = [k for k in self.keyframes if k.submap_id in H_world_submap]
-        T_world_cam, K = keyframe_cameras(keyframes, H_world_submap)
+        T_world_cam, K = keyframe_cameras(keyframes, H_world_submap, world.H_world_keyframe)
         gt = None
         if keyframes and all(k.frame_index in self._gt for k in keyframes):
             gt = np.stack([self._gt[k.frame_index] for k in keyframes])
@@ -552,7 +599,7 @@ class SLAMPipeline:
             },
         }
         return SLAMResult(keyframes, T_world_cam, K, H_world_submap, gt, list(self.edges), segments, stats,
-                          colors=self._colors)
+                          colors=self._colors, H_world_keyframe=dict(world.H_world_keyframe))
 
     def _colors(self, keyframe: StoredKeyframe) -> np.ndarray:
         if self._source is None:
@@ -560,22 +607,37 @@ class SLAMPipeline:
         return self.frontend.grid_colors(self._source.get(keyframe.frame_index))
 
 
-def keyframe_cameras(keyframes: Sequence[StoredKeyframe], H_world_submap: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """World poses and intrinsics of keyframes: ``P = K [R|t] H_world_submap^-1``, RQ-decomposed.
+def keyframe_cameras(keyframes: Sequence[StoredKeyframe], H_world_submap: dict[int, np.ndarray],
+                     H_world_keyframe: dict[int, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World poses and intrinsics of keyframes: ``P = K [R|t] H^-1``, RQ-decomposed, with ``H`` the
+    keyframe's own transform in ``H_world_keyframe`` (by frame index, keyframe graph) or else its
+    submap's in ``H_world_submap``.
 
     Returns ``T_world_cam (N, 4, 4)`` and ``K (N, 3, 3)``.
     """
     if not keyframes:
         return np.zeros((0, 4, 4)), np.zeros((0, 3, 3))
-    P = world_cameras(keyframes, H_world_submap)
+    P = world_cameras(keyframes, H_world_submap, H_world_keyframe)
     K, T_world_cam, _ = decompose_projection(P)
     return T_world_cam, K
 
 
-def world_cameras(keyframes: Sequence[StoredKeyframe], H_world_submap: dict[int, np.ndarray]) -> np.ndarray:
-    """``(N, 3, 4)`` camera matrices ``K [R|t] H_world_submap^-1`` of keyframes in the world frame."""
+def world_cameras(keyframes: Sequence[StoredKeyframe], H_world_submap: dict[int, np.ndarray],
+                  H_world_keyframe: dict[int, np.ndarray] | None = None) -> np.ndarray:
+    """``(N, 3, 4)`` camera matrices ``K [R|t] H^-1`` of keyframes in the world frame (``H`` as in
+    :func:`keyframe_cameras`)."""
+    own = H_world_keyframe or {}
     H_inv = {i: np.linalg.inv(H) for i, H in H_world_submap.items()}
-    return np.stack([k.K @ k.T_cam_submap[:3] @ H_inv[k.submap_id] for k in keyframes])
+    return np.stack([k.K @ k.T_cam_submap[:3] @ (np.linalg.inv(own[k.frame_index]) if k.frame_index in own
+                                                  else H_inv[k.submap_id]) for k in keyframes])
+
+
+def recorded_match_ratio(prediction: SubmapPrediction, first: int, second: int) -> float | None:
+    """The frontend's image-match ratio of slots ``(first, second)``, or ``None`` when it gave none."""
+    if prediction.match_pairs is None or prediction.match_ratios is None:
+        return None
+    hits = np.flatnonzero((np.asarray(prediction.match_pairs) == (first, second)).all(axis=1))
+    return float(prediction.match_ratios[hits[0]]) if len(hits) else None
 
 
 def prediction_problem(prediction: SubmapPrediction, num_frames: int) -> str | None:

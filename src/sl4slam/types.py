@@ -82,6 +82,10 @@ class SubmapPrediction:
         principal_point: optional ``(S, 2)`` float64, the principal point the frontend assumes for
             each frame on the prediction grid (VGGT: the grid centre ``(W/2, H/2)``); the
             projective-to-metric upgrade constrains the cameras to it.
+        match_pairs: optional ``(n, 2)`` int64 frame slots ``(first, second)`` the frontend scored,
+            when asked (``Frontend.reconstruct(..., match_pairs=...)``).
+        match_ratios: optional ``(n,)`` float32 their image-match ratios (VGGT's attention,
+            ``sl4slam.models.vggt.attention``; the simulator's true-overlap stand-in).
     """
 
     depth: np.ndarray
@@ -92,6 +96,8 @@ class SubmapPrediction:
     points: np.ndarray | None = None
     points_confidence: np.ndarray | None = None
     principal_point: np.ndarray | None = None
+    match_pairs: np.ndarray | None = None
+    match_ratios: np.ndarray | None = None
 
     @property
     def num_frames(self) -> int:
@@ -115,7 +121,9 @@ class Frontend(Protocol):
         """Reconstruct ``frames`` (in order; the first defines the submap frame).
 
         ``submap_id`` lets stochastic frontends (the simulator) draw reproducible,
-        submap-specific noise; deterministic models ignore it.
+        submap-specific noise; deterministic models ignore it. The pipeline passes a keyword
+        ``match_pairs`` (a list of slot pairs) only when the loop check wants image-match ratios
+        (``SubmapPrediction.match_ratios``); frontends that can score pairs accept it.
         """
         ...
 

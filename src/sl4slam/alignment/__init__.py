@@ -12,14 +12,17 @@
 - :func:`dlt_sl4` / :func:`minimal_sl4_batch`: the least-squares and batched minimal DLT solvers.
 """
 
-from .aligner import SL4Aligner, Sim3CameraAligner, Sim3PointAligner, make_aligner, shared_pixels
+from .aligner import CalibrationAligner, HybridAligner, SL4Aligner, Sim3CameraAligner, Sim3PointAligner, make_aligner, shared_pixels
 from .camera_constrained import camera_constrained_sl4
 from .dlt import dlt_design_matrix, dlt_sl4, minimal_sl4_batch, normalize_points
 from .ransac import estimate_sim3, estimate_sl4
 from .sim3 import sim3_from_shared_frame
 
 __all__ = [
+    "CalibrationAligner",
+    "HybridAligner",
     "SL4Aligner",
+
     "Sim3CameraAligner",
     "Sim3PointAligner",
     "make_aligner",

@@ -10,7 +10,11 @@ each), keeps the pixels confident in both (an evenly strided subset beyond
   ``Alignment.fallback`` says so;
 - :class:`Sim3PointAligner` (``"sim3-points"``): 7-DOF Umeyama in RANSAC on the same points;
 - :class:`Sim3CameraAligner` (``"sim3-cameras"``): the shared frame's two cameras and the median
-  ratio of its depths (no point fit).
+  ratio of its depths (no point fit);
+- :class:`CalibrationAligner` (``"calibration"``, VGGT-SLAM 2.0): the shared frame's two cameras with
+  their intrinsics and the median depth ratio, as an SL(4) map, for every frame (no point fit);
+- :class:`HybridAligner` (``"hybrid"``): that link, or the 15-DOF fit where the points show a relative
+  projective distortion well beyond what depth errors explain.
 
 Any of them offers :meth:`~sl4slam.types.Aligner.camera_edge`, the camera-and-depth measurement
 the pipeline falls back to when a fit fails (with an inflated sigma).
@@ -23,9 +27,10 @@ from abc import abstractmethod
 import numpy as np
 
 from ..config import AlignmentConfig, SLAMConfig, alignment_model
+from ..edges import is_camera_link
 from ..types import Aligner, Alignment, FrameView
 from .camera_constrained import camera_constrained_sl4
-from .ransac import estimate_sim3, estimate_sl4, relief
+from .ransac import estimate_sim3, estimate_sl4, relief, transfer_errors
 from .sim3 import calibration_scale_link, sim3_from_shared_frame
 
 
@@ -142,7 +147,8 @@ class SL4Aligner(PointAligner):
         if self.config.planar_model == "auto":
             link = self.camera_edge(view_a, view_b)
             margin = self.config.planar_support_margin
-            if constrained is None or constrained.inlier_ratio < margin * link.inlier_ratio:
+            if (constrained is None or constrained.inlier_ratio < margin * link.inlier_ratio
+                    or constrained.inlier_ratio < self.config.planar_fit_min_inlier_ratio):
                 link.fallback = f"{why}; used the calibration-and-scale link of the frame's cameras"
                 return link
             constrained.fallback = (f"{why}; used the camera-constrained projective fit (it explains "
@@ -178,8 +184,52 @@ class Sim3CameraAligner(PointAligner):
         return sim3_from_shared_frame(view_a.T_cam_submap, view_b.T_cam_submap, X_a, X_b, self.config.inlier_threshold)
 
 
+class CalibrationAligner(SL4Aligner):
+    """The shared frame's calibration-and-scale link for every edge (VGGT-SLAM 2.0): its two cameras,
+    their intrinsics and the median depth ratio (:func:`calibration_scale_link`), never a point fit."""
+
+    model = "calibration"
+
+    def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
+        return calibration_scale_link(view_a.K, view_a.T_cam_submap, view_b.K, view_b.T_cam_submap, X_a, X_b,
+                                      self.config.inlier_threshold)
+
+
+class HybridAligner(SL4Aligner):
+    """The calibration-and-scale link, unless the 15-DOF fit explains the shared frame markedly better.
+
+    Both are measured on the shared frame. The link trusts the two cameras for all but the scale, so
+    what it leaves unexplained is the depth error of the two reconstructions plus any relative
+    projective distortion; the 15-DOF fit also absorbs smooth depth warps as a projective error,
+    which then drifts from link to link. The fit replaces the link only where the points show a
+    distortion well beyond that: its median transfer error must be ``hybrid_margin`` times smaller
+    than the link's (benchmarks/bench_keyframe_graph.py). A degenerate frame (planar or flat against
+    its depth errors) gets the link (or the ``planar_model``) as in :class:`SL4Aligner`; the link is
+    then this model's own choice, not a fallback (``extras["degenerate"]`` says why).
+    ``Alignment.extras["hybrid_ratio"]`` records the ratio.
+    """
+
+    model = "hybrid"
+
+    def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
+        fitted = super().fit(X_a, X_b, view_a, view_b, seed)
+        if fitted.fallback is not None:  # degenerate: already the constrained model
+            if is_camera_link(fitted):  # the link is this model's own choice here, not a fallback
+                fitted.extras["degenerate"], fitted.fallback = fitted.fallback, None
+            return fitted
+        link = calibration_scale_link(view_a.K, view_a.T_cam_submap, view_b.K, view_b.T_cam_submap, X_a, X_b,
+                                      self.config.inlier_threshold)
+        sample = slice(None, None, max(1, len(X_b) // self.config.max_points))
+        errors = [np.median(transfer_errors(H[None], X_a[sample], X_b[sample])[0][0]) for H in (link.H, fitted.H)]
+        ratio = float(np.sqrt(errors[0] / max(errors[1], 1e-30)))
+        chosen = fitted if ratio > self.config.hybrid_margin else link
+        chosen.extras["hybrid_ratio"] = ratio
+        return chosen
+
+
 ALIGNERS: dict[str, type[PointAligner]] = {
-    "sl4": SL4Aligner, "sim3-points": Sim3PointAligner, "sim3-cameras": Sim3CameraAligner}
+    "sl4": SL4Aligner, "calibration": CalibrationAligner, "hybrid": HybridAligner, "sim3-points": Sim3PointAligner,
+    "sim3-cameras": Sim3CameraAligner}
 
 
 def make_aligner(config: SLAMConfig) -> Aligner:

@@ -27,6 +27,13 @@ ends a run: :meth:`Backend.start_segment` adds the node with a weak prior (``seg
 guess instead of an odometry factor, and a failed update is rolled back (the graph is rebuilt
 without the factors of that update) before raising :class:`BackendUpdateError`.
 
+Graph designs. This module's :class:`FactorGraphBackend` is the submap graph (one node per submap);
+``sl4slam.backend.keyframe`` holds the keyframe graph (one node per keyframe). Both take the same
+calls: a submap's odometry measurement ``H_prev_cur`` and loops ``H_i_j`` in *submap* coordinates,
+with :class:`SubmapFrames` (the submap's keyframes and their extrinsics) and the loop's two frames,
+which the submap graph does not need and the keyframe graph uses to place the measurement between
+keyframe nodes; both return a :class:`WorldEstimate`.
+
 The graph is optimized with iSAM2: a pure odometry step only eliminates the newest clique, so its
 cost does not grow with the map. A loop factor makes iSAM2 re-eliminate the path from the loop's
 older node to the root, and relinearize every variable whose step exceeds the threshold; both
@@ -44,6 +51,7 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
 from typing import Any
 
 import gtsam
@@ -66,6 +74,43 @@ def check_matrix(name: str, M: Any) -> np.ndarray:
     return M
 
 
+@dataclass(frozen=True)
+class SubmapFrames:
+    """The keyframes of one submap, as a keyframe graph needs them (the submap graph ignores them).
+
+    Attributes:
+        frame_indices: the frames in submap order: the shared frame first when ``shared``, then the
+            new keyframes (the last of which is the next submap's shared frame).
+        T_cam_submap: ``(n, 4, 4)`` float64 their extrinsics (camera-from-submap) in this submap.
+        shared: whether the first frame is the shared frame (new in the previous submap).
+    """
+
+    frame_indices: tuple[int, ...]
+    T_cam_submap: np.ndarray
+    shared: bool
+
+    @property
+    def new(self) -> range:
+        """Positions of the new keyframes."""
+        return range(1 if self.shared else 0, len(self.frame_indices))
+
+
+@dataclass
+class WorldEstimate:
+    """Where the map sits in the world under one estimate of the graph.
+
+    Attributes:
+        H_world_submap: ``{submap_id: (4, 4)}`` maps each submap's points into the world (the
+            keyframe graph: through the node of the submap's first frame).
+        H_world_keyframe: ``{frame_index: (4, 4)}`` maps the points of each keyframe's own submap
+            into the world through that keyframe's node, for graphs with a node per keyframe (empty
+            for the submap graph, where every keyframe goes through its submap's node).
+    """
+
+    H_world_submap: dict[int, np.ndarray]
+    H_world_keyframe: dict[int, np.ndarray] = field(default_factory=dict)
+
+
 class Backend(ABC):
     """Pose graph over submap transforms ``H_world_submap`` (4x4, float64): the interface the
     pipeline talks to.
@@ -80,18 +125,23 @@ class Backend(ABC):
     last_update_seconds: float = 0.0
 
     @abstractmethod
-    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, information: np.ndarray | None = None) -> None:
-        """Add a node; ``H_prev_cur`` (4, 4) maps this submap's points into the previously added
-        submap's. The first submap takes ``None`` and is anchored at the identity. ``information``
-        ``(dim, dim)`` is the measurement's (``None``: the isotropic default)."""
+    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, information: np.ndarray | None = None,
+                   frames: SubmapFrames | None = None) -> None:
+        """Add a submap; ``H_prev_cur`` (4, 4) maps its points into the previously added submap's
+        (measured on the shared frame). The first submap takes ``None`` and is anchored at the
+        identity. ``information`` ``(dim, dim)`` is the measurement's (``None``: the isotropic
+        default), in the tangent of ``H_prev_cur``. ``frames``: the submap's keyframes."""
 
     @abstractmethod
-    def start_segment(self, submap_id: int, H_world_guess: np.ndarray) -> None:
-        """Add a node without odometry: a weak prior at ``H_world_guess`` starts a new map segment."""
+    def start_segment(self, submap_id: int, H_world_guess: np.ndarray, frames: SubmapFrames | None = None) -> None:
+        """Add a submap without odometry: a weak prior at ``H_world_guess`` starts a new map segment."""
 
     @abstractmethod
-    def add_loop(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray | None = None) -> None:
-        """Add a loop closure ``x_i ~ H_i_j x_j`` (4, 4) between existing submaps ``i`` and ``j``."""
+    def add_loop(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray | None = None,
+                 frames: tuple[int, int] | None = None) -> None:
+        """Add a loop closure ``x_i ~ H_i_j x_j`` (4, 4) between existing submaps ``i`` and ``j``;
+        ``frames``: the keyframe of ``i`` and the keyframe of ``j`` it ties (the retrieved frame
+        and the query keyframe)."""
 
     @abstractmethod
     def update(self) -> None:
@@ -126,9 +176,14 @@ class Backend(ABC):
         information matrices are expressed."""
 
     @abstractmethod
-    def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray) -> float:
+    def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray,
+                  frames: tuple[int, int] | None = None) -> float:
         """Squared Mahalanobis distance of the loop ``H_i_j`` from the current estimate, under the
-        joint covariance of nodes ``i``, ``j`` plus the measurement's own (``information^-1``)."""
+        joint covariance of the nodes it ties plus the measurement's own (``information^-1``)."""
+
+    def world_estimate(self, final: bool = False) -> WorldEstimate:
+        """The map under iSAM2's current estimate, or (``final``) polished to convergence (O(map))."""
+        return WorldEstimate(self.final_estimates() if final else self.estimates())
 
 
 class FactorGraphBackend(Backend):
@@ -256,8 +311,9 @@ class FactorGraphBackend(Backend):
         self._pending_ids.append(submap_id)
         self._last_estimate = guess
 
-    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, information: np.ndarray | None = None) -> None:
-        """Add a node for ``submap_id``.
+    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, information: np.ndarray | None = None,
+                   frames: SubmapFrames | None = None) -> None:
+        """Add a node for ``submap_id`` (``frames`` is not needed by this graph).
 
         Args:
             submap_id: new, non-negative id.
@@ -266,14 +322,12 @@ class FactorGraphBackend(Backend):
                 at the identity. The initial guess is ``H_world_prev @ H_prev_cur``.
             information: ``(dim, dim)`` of the measurement; ``None``: isotropic ``config.sigma``.
         """
-        submap_id = self._check_new(submap_id)
         if not self._order:
             if H_prev_cur is not None:
                 raise ValueError("the first submap anchors the world frame: pass H_prev_cur=None")
-            self._segments.append(submap_id)
-            self._insert(submap_id, np.eye(4), self._prior_factor(self.key(submap_id), self._to_gtsam(np.eye(4)),
-                                                                  self._prior_noise))
+            self.anchor(submap_id, np.eye(4))
             return
+        submap_id = self._check_new(submap_id)
         if H_prev_cur is None:
             raise ValueError(f"submap {submap_id} needs H_prev_cur (only the first submap takes None)")
         H_prev_cur = self._check("H_prev_cur", H_prev_cur)
@@ -281,14 +335,25 @@ class FactorGraphBackend(Backend):
         factor = self.relative_factor(self._order[-1], submap_id, H_prev_cur, self.noise_model(information))
         self._insert(submap_id, guess, factor)
 
-    def start_segment(self, submap_id: int, H_world_guess: np.ndarray) -> None:
+    def anchor(self, submap_id: int, H_world: np.ndarray) -> None:
+        """Add the first node with the strong prior (``config.prior_sigma``) at ``H_world``: it fixes
+        the world frame (``add_submap`` anchors the first submap at the identity)."""
+        submap_id = self._check_new(submap_id)
+        if self._order:
+            raise ValueError(f"node {submap_id} cannot anchor the world: the graph already has nodes")
+        H_world = self._check("anchor", H_world)
+        self._segments.append(submap_id)
+        self._insert(submap_id, H_world, self._prior_factor(self.key(submap_id), self._to_gtsam(H_world), self._prior_noise))
+
+    def start_segment(self, submap_id: int, H_world_guess: np.ndarray, frames: SubmapFrames | None = None) -> None:
         """Add ``submap_id`` with a weak prior (``config.segment_sigma``) at ``H_world_guess``."""
         submap_id = self._check_new(submap_id)
         guess = self._check("segment guess", H_world_guess)
         self._segments.append(submap_id)
         self._insert(submap_id, guess, self._prior_factor(self.key(submap_id), self._to_gtsam(guess), self._segment_noise))
 
-    def add_loop(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray | None = None) -> None:
+    def add_loop(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray | None = None,
+                 frames: tuple[int, int] | None = None) -> None:
         """Add a loop factor ``x_i ~ H_i_j x_j`` between already added submaps ``i != j``.
 
         Uses ``BackendConfig.loop_kernel`` (none / Huber / Cauchy, width in whitened units).
@@ -405,6 +470,11 @@ class FactorGraphBackend(Backend):
             self.update()
         if not self._isam.size():
             return self.estimates()
+        values = self.polished_values(max_iterations)
+        return {submap_id: self._from_gtsam(self._at(values, self.key(submap_id))) for submap_id in self._order}
+
+    def polished_values(self, max_iterations: int = 20) -> gtsam.Values:
+        """iSAM2's estimate polished by batch Gauss-Newton (see :meth:`final_estimates`), as ``gtsam.Values``."""
         graph = self.factor_graph()
         values = self._isam.calculateBestEstimate()
         error = graph.error(values)
@@ -423,9 +493,10 @@ class FactorGraphBackend(Backend):
             values, error = gtsam.Values(optimizer.values()), new_error  # a copy: the optimizer owns its values
             if converged:
                 break
-        return {submap_id: self._from_gtsam(self._at(values, self.key(submap_id))) for submap_id in self._order}
+        return values
 
-    def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray) -> float:
+    def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray,
+                  frames: tuple[int, int] | None = None) -> float:
         """See :meth:`Backend.loop_chi2`. Costs one batch marginalization of the graph (about 10 ms
         for 300 SL(4) nodes), so call it for loop candidates only."""
         H_i_j = self._check("H_i_j", H_i_j)

@@ -52,3 +52,17 @@ class SL4Backend(FactorGraphBackend):
 
     def _prior_factor(self, key: int, Z: gtsam.SL4, noise: Any) -> gtsam.PriorFactorSL4:
         return gtsam.PriorFactorSL4(key, Z, noise)
+
+    def estimate_matrices(self, final: bool = False) -> np.ndarray:
+        """``(N, 4, 4)`` every node's estimate in insertion order, as GTSAM holds it (det 1): the
+        fast form of :meth:`estimates` (``final``: :meth:`final_estimates`) for graphs of thousands
+        of nodes, without a per-node normalization."""
+        if final and (self._pending_factors.size() or self._pending_values.size()):
+            self.update()
+        if not self._isam.size():
+            values = gtsam.Values()
+        else:
+            values = self.polished_values() if final else self._isam.calculateBestEstimate()
+        keys = [self.key(node) for node in self._order]
+        return np.array([(self._pending_values if self._pending_values.exists(key) else values).atSL4(key).matrix()
+                         for key in keys], dtype=np.float64).reshape(-1, 4, 4)

@@ -1,5 +1,9 @@
 """Record and replay frontend outputs (one compressed ``.npz`` per submap).
 
+The frames a submap holds do not depend on the graph design, so a recording made with either graph
+replays with the other; image-match ratios (the loop check's attention score) are recorded when the
+recording run asked for them.
+
 Recording lets the expensive model run once (e.g. on a GPU) and the backend be re-run anywhere:
 ``sl4slam run SRC --out A --cache-frontend`` writes ``A/frontend_cache/``; ``sl4slam run SRC --out B
 --replay A/frontend_cache`` replays it. Keyframe selection and retrieval are deterministic, so the
@@ -17,7 +21,8 @@ import numpy as np
 from ..errors import UserError
 from ..types import Frame, Frontend, SubmapPrediction
 
-_FIELDS = ("depth", "confidence", "T_cam_submap", "K", "colors", "points", "points_confidence", "principal_point")
+_FIELDS = ("depth", "confidence", "T_cam_submap", "K", "colors", "points", "points_confidence", "principal_point",
+           "match_pairs", "match_ratios")
 
 
 def _path(directory: Path, submap_id: int) -> Path:
@@ -40,8 +45,8 @@ class CachingFrontend:
     def grid_colors(self, frame: Frame) -> np.ndarray:
         return self.inner.grid_colors(frame)
 
-    def reconstruct(self, frames: Sequence[Frame], submap_id: int) -> SubmapPrediction:
-        prediction = self.inner.reconstruct(frames, submap_id)
+    def reconstruct(self, frames: Sequence[Frame], submap_id: int, **kwargs) -> SubmapPrediction:
+        prediction = self.inner.reconstruct(frames, submap_id, **kwargs)
         arrays = {k: getattr(prediction, k) for k in _FIELDS if getattr(prediction, k) is not None}
         arrays["frame_indices"] = np.array([f.index for f in frames], dtype=np.int64)
         arrays["frontend"] = np.array(self.inner.name)
@@ -86,7 +91,10 @@ class ReplayFrontend:
         with np.load(path) as data:
             return data["colors"][slot]
 
-    def reconstruct(self, frames: Sequence[Frame], submap_id: int) -> SubmapPrediction:
+    def reconstruct(self, frames: Sequence[Frame], submap_id: int,
+                    match_pairs: Sequence[tuple[int, int]] = ()) -> SubmapPrediction:
+        """The recorded prediction; image-match ratios are the recorded ones (none if the recording
+        was made without the loop check asking for them: the check is then skipped)."""
         path = _path(self.directory, submap_id)
         if not path.is_file():
             raise UserError(f"the frontend cache has no submap {submap_id} ({path.name}); re-record it with the same source and settings")

@@ -185,6 +185,7 @@ from ..config import SimulatorConfig
 from ..errors import UserError
 from ..geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse, unproject_depth
 from ..types import Frame, SubmapPrediction
+from .overlap import overlap_match_ratio
 
 # Stream tags for SeedSequence spawn keys: the distortion, the gauge and the per-frame draws (noise,
 # blobs, confidence; camera, focal, warp, flying pixels; each in its own stream) never share random
@@ -224,13 +225,16 @@ class SimulatedFrontend:
 
     # ------------------------------------------------------------------ public API
 
-    def reconstruct(self, frames: Sequence[Frame], submap_id: int) -> SubmapPrediction:
+    def reconstruct(self, frames: Sequence[Frame], submap_id: int,
+                    match_pairs: Sequence[tuple[int, int]] = ()) -> SubmapPrediction:
         """Corrupted VGGT-like prediction of ``frames`` (the first defines the submap frame).
 
         Returns a :class:`SubmapPrediction` on the frames' pixel grid: depth and confidence
         ``(S, H, W)`` float32, ``T_cam_submap`` ``(S, 3, 4)`` and ``K`` ``(S, 3, 3)`` float64,
         colours = the frames' RGB, ``principal_point`` ``(S, 2)`` float64 = the true intrinsics'
         principal points. ``points`` is left ``None`` (the pipeline unprojects depth).
+        ``match_pairs`` (slot pairs) get the true-overlap stand-in for VGGT's image-match ratio
+        (``sl4slam.frontend.overlap``).
         """
         cfg = self.config
         truth = _TrueSubmap(frames, submap_id)
@@ -272,7 +276,7 @@ class SimulatedFrontend:
 
         self.distortions[int(submap_id)] = H
         self.last_distortion = H
-        return SubmapPrediction(
+        prediction = SubmapPrediction(
             depth=depth,
             confidence=confidence,
             T_cam_submap=T_cam_submap[:, :3, :],
@@ -280,6 +284,11 @@ class SimulatedFrontend:
             colors=np.stack([np.asarray(f.rgb, dtype=np.uint8) for f in frames]),
             principal_point=truth.K[:, :2, 2].copy(),
         )
+        if match_pairs:
+            prediction.match_pairs = np.asarray(match_pairs, dtype=np.int64).reshape(-1, 2)
+            prediction.match_ratios = np.array([overlap_match_ratio(frames[a], frames[b]) for a, b in match_pairs],
+                                               dtype=np.float32)
+        return prediction
 
     def prepare(self) -> None:
         """Nothing to load: the simulator needs no weights."""

@@ -6,9 +6,18 @@ depth, confidence, the intrinsics and the colours. How each input frame maps ont
 kept in :attr:`VGGTFrontend.last_transforms` (scale and offset per frame, plus the region that is
 image rather than padding).
 
-Precision: float32 on CPU; on CUDA the aggregator runs under bf16 (or fp16 where bf16 is not
-supported) autocast with its weights stored in that dtype, and the heads run in float32, as in
-the released model.
+Loop check: asked for ``match_pairs``, the frontend also returns VGGT-SLAM 2.0's image-match ratio of
+each pair of slots, read from the attention of global block ``VGGTConfig.match_layer`` during the same
+forward pass (``sl4slam.models.vggt.attention``).
+
+Precision (``--dtype``, :mod:`sl4slam.models.vggt.precision`): "auto" is float32 on CPU and bf16
+(fp16 where bf16 is not supported) on CUDA; half precision stores the aggregator's weights in that
+dtype and runs it under autocast; "int8" (CPU) quantizes the aggregator's linear layers. The heads
+always run in float32, as in the released model.
+
+Memory: the dense heads decode ``head_chunk_frames`` frames at a time; with ``--max-memory GB`` the
+chunk is chosen per submap from an estimate of the peak (:mod:`sl4slam.models.vggt.memory`), and a
+submap that cannot fit is refused with the largest size that would.
 """
 
 from __future__ import annotations
@@ -21,6 +30,7 @@ import torch
 
 from ..config import VGGTConfig
 from ..errors import UserError
+from ..models.vggt.attention import MatchRatioProbe
 from ..models.vggt.memory import (
     GIB,
     estimate_peak_bytes,
@@ -134,32 +144,41 @@ class VGGTFrontend:
                                    self.device.type, self.heads)
 
     @torch.inference_mode()
-    def predict(self, images: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Raw model outputs for ``(S, 3, H, W)`` images in [0, 1] on the model's grid."""
+    def predict(self, images: torch.Tensor, match_pairs: Sequence[tuple[int, int]] = ()) -> dict[str, torch.Tensor]:
+        """Raw model outputs for ``(S, 3, H, W)`` images in [0, 1] on the model's grid; with
+        ``match_pairs`` also ``"match_ratios"`` ``(len(match_pairs),)`` (numpy) from the same pass."""
         model = self.model
         model.set_head_chunk_frames(self.head_chunk(images.shape[0], *images.shape[-2:]))
         images = images.to(self.device)
         autocast = self.precision.autocast
+        probe = MatchRatioProbe(model.aggregator, match_pairs, len(images), self.config.match_layer) if match_pairs else None
         with torch.autocast(device_type=self.device.type, dtype=autocast or torch.float32, enabled=autocast is not None):
-            return model(images, heads=self.heads)
+            if probe is None:
+                return model(images, heads=self.heads)
+            with probe:
+                outputs = model(images, heads=self.heads)
+        outputs["match_ratios"] = probe.ratios[0]
+        return outputs
 
     def grid_colors(self, frame: Frame) -> np.ndarray:
         """``(H, W, 3)`` uint8 colours of ``frame`` on the model's grid (the preprocessing, without the model)."""
         images, _ = preprocess_images([frame.rgb], mode=self.config.preprocess_mode)
         return to_uint8_rgb(images)[0]
 
-    def reconstruct(self, frames: Sequence[Frame], submap_id: int) -> SubmapPrediction:
+    def reconstruct(self, frames: Sequence[Frame], submap_id: int,
+                    match_pairs: Sequence[tuple[int, int]] = ()) -> SubmapPrediction:
         """Reconstruct ``frames`` into one submap (the first frame's camera is the submap frame).
 
         Returns depth/confidence ``(S, H, W)`` float32, ``T_cam_submap`` ``(S, 3, 4)`` and ``K``
         ``(S, 3, 3)`` float64 and colours ``(S, H, W, 3)`` uint8, all on the model's grid
-        ``(H, W)``; see :attr:`last_transforms` for the mapping from each input frame.
+        ``(H, W)``; see :attr:`last_transforms` for the mapping from each input frame. With
+        ``match_pairs`` (slot pairs), also their image-match ratios (``match_ratios``).
         """
         if len(frames) == 0:
             raise ValueError("reconstruct needs at least one frame")
         images, transforms = preprocess_images([frame.rgb for frame in frames], mode=self.config.preprocess_mode)
         self.last_transforms = transforms
-        outputs = self.predict(images)
+        outputs = self.predict(images, match_pairs)
         height, width = images.shape[-2:]
         extrinsics, intrinsics = pose_encoding_to_extri_intri(outputs["pose_enc"][0].double().cpu(), (height, width))
         prediction = SubmapPrediction(
@@ -170,6 +189,9 @@ class VGGTFrontend:
             colors=to_uint8_rgb(images),
             principal_point=np.tile([width / 2.0, height / 2.0], (len(frames), 1)),
         )
+        if match_pairs:
+            prediction.match_pairs = np.asarray(match_pairs, dtype=np.int64).reshape(-1, 2)
+            prediction.match_ratios = np.asarray(outputs["match_ratios"], dtype=np.float32)
         if self.with_points:
             prediction.points = outputs["world_points"][0].float().cpu().numpy()
             prediction.points_confidence = outputs["world_points_conf"][0].float().cpu().numpy()

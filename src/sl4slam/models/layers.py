@@ -75,9 +75,10 @@ class Attention(nn.Module):
         self.proj = nn.Linear(dim, dim, bias=proj_bias)
         self.rope = rope
 
-    def forward(self, x: Tensor, pos: Tensor | None = None) -> Tensor:
-        """``x``: ``(B, N, C)`` tokens; ``pos``: positions handed to ``rope`` (e.g. ``(B, N, 2)``)."""
-        batch, num_tokens, channels = x.shape
+    def query_key_value(self, x: Tensor, pos: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """``q, k, v`` ``(B, heads, N, head_dim)`` of tokens ``x`` ``(B, N, C)``: q and k normed and
+        rotated, q not yet scaled. Each token's q, k, v depend on that token (and its position) only."""
+        batch, num_tokens, _ = x.shape
         # (B, N, 3, H, D) -> (3, B, H, N, D)
         qkv = self.qkv(x).reshape(batch, num_tokens, 3, self.num_heads, self.head_dim).permute(2, 0, 3, 1, 4)
         q, k, v = qkv.unbind(0)
@@ -85,6 +86,12 @@ class Attention(nn.Module):
         if self.rope is not None and pos is not None:
             q = self.rope(q, pos)
             k = self.rope(k, pos)
+        return q, k, v
+
+    def forward(self, x: Tensor, pos: Tensor | None = None) -> Tensor:
+        """``x``: ``(B, N, C)`` tokens; ``pos``: positions handed to ``rope`` (e.g. ``(B, N, 2)``)."""
+        batch, num_tokens, channels = x.shape
+        q, k, v = self.query_key_value(x, pos)
         x = F.scaled_dot_product_attention(q, k, v)
         x = x.transpose(1, 2).reshape(batch, num_tokens, channels)
         return self.proj(x)

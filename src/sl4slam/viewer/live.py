@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import sys
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TextIO
 
 import numpy as np
@@ -66,6 +66,7 @@ class _Snapshot:
     K: np.ndarray | None = None
     gt: np.ndarray | None = None
     summary: dict | None = None
+    keyframe_estimates: dict[int, np.ndarray] = field(default_factory=dict)  # per keyframe (keyframe graph)
 
 
 class LiveViewer:
@@ -102,9 +103,11 @@ class LiveViewer:
     # ------------------------------------------------------------------ pipeline side
     def on_submap(self, pipeline, submap_id: int) -> None:
         """The pipeline's per-submap callback: snapshot and return at once."""
+        world = pipeline.backend.world_estimate()
         snapshot = _Snapshot(keyframes=list(pipeline.keyframes),
-                             estimates={k: np.array(v, np.float64) for k, v in pipeline.backend.estimates().items()},
-                             edges=list(pipeline.edges), frames=int(getattr(pipeline, "num_frames", 0)), colors=pipeline)
+                             estimates={k: np.array(v, np.float64) for k, v in world.H_world_submap.items()},
+                             edges=list(pipeline.edges), frames=int(getattr(pipeline, "num_frames", 0)), colors=pipeline,
+                             keyframe_estimates=dict(world.H_world_keyframe))
         self._submit(snapshot)
 
     __call__ = on_submap
@@ -114,7 +117,7 @@ class LiveViewer:
         snapshot = _Snapshot(keyframes=list(result.keyframes), estimates=dict(result.H_world_submap),
                              edges=list(result.edges), frames=int(result.stats.get("frames", 0)),
                              T_world_cam=result.T_world_cam, K=result.K, gt=result.T_world_cam_gt, summary=summary,
-                             colors=result)
+                             colors=result, keyframe_estimates=dict(getattr(result, "H_world_keyframe", {})))
         self._submit(snapshot)
         self.wait(timeout)
 
@@ -162,7 +165,7 @@ class LiveViewer:
         if snap.T_world_cam is not None:
             T_world_cam, K = np.asarray(snap.T_world_cam), np.asarray(snap.K)
         else:
-            T_world_cam, K = keyframe_cameras(keyframes, snap.estimates)
+            T_world_cam, K = keyframe_cameras(keyframes, snap.estimates, snap.keyframe_estimates)
         extent = scene_extent(T_world_cam[:, :3, 3]) if len(T_world_cam) else 1.0
         with viewer.lock:
             by_submap: dict[int, list] = {}
@@ -170,10 +173,11 @@ class LiveViewer:
                 by_submap.setdefault(keyframe.submap_id, []).append(keyframe)
             new = [s for s in sorted(by_submap) if s not in state.clouds]
             moved = [s for s in state.clouds if s in snap.estimates and self._moved(s, snap.estimates[s], extent)]
-            for s in new:
-                state.clouds[s] = self._build_cloud(s, by_submap[s], snap.estimates[s], snap.colors)
+            own = snap.keyframe_estimates  # a node per keyframe: a moved submap may have bent, so it is rebuilt
+            for s in new + (moved if own else []):
+                state.clouds[s] = self._build_cloud(s, by_submap[s], snap.estimates[s], snap.colors, own)
                 self._drawn_H[s] = snap.estimates[s]
-            for s in moved:
+            for s in ([] if own else moved):
                 self._move_cloud(state.clouds[s], snap.estimates[s] @ np.linalg.inv(self._drawn_H[s]))
                 self._drawn_H[s] = snap.estimates[s]
             resized = self._fit_budget()
@@ -208,12 +212,14 @@ class LiveViewer:
         self.updates += 1
         self.redrawn.append(sorted(moved))
 
-    def _build_cloud(self, submap_id: int, keyframes: list, H_world_submap: np.ndarray, owner=None) -> SubmapCloud:
+    def _build_cloud(self, submap_id: int, keyframes: list, H_world_submap: np.ndarray, owner=None,
+                     H_world_keyframe: dict | None = None) -> SubmapCloud:
         from ..outputs import keyframe_world_points
 
         points, colors, confidence = [], [], []
+        own = H_world_keyframe or {}
         for keyframe in keyframes:
-            X, valid = keyframe_world_points(keyframe, H_world_submap)
+            X, valid = keyframe_world_points(keyframe, own.get(keyframe.frame_index, H_world_submap))
             points.append(X[valid])
             colors.append(keyframe_colors(keyframe, owner)[valid])
             conf = keyframe_confidence(keyframe)

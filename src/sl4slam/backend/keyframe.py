@@ -1,0 +1,273 @@
+"""The keyframe graph (VGGT-SLAM 2.0): one SL(4) node per keyframe.
+
+Nodes. ``X_n = H_world_cam`` for every keyframe of every submap: it maps that keyframe's camera frame,
+as the submap reconstructed it, into the world. The keyframe's world camera is ``K [I | 0] X_n^-1``
+and its submap's points reach the world through ``X_n T_cam_submap`` (so a submap graph node
+``H_world_submap`` corresponds to ``X_n T_cam_submap`` of any of its keyframes). The shared frame of two
+consecutive submaps has a node in each.
+
+Factors (``x_a ~ Z x_b`` read as in ``sl4slam.backend.base``, whose factor residual they use):
+
+- inside a submap, between consecutive keyframes ``a`` and ``b``: the frontend's relative pose
+  ``T_cam_a_submap T_cam_b_submap^-1`` (rigid), isotropic ``BackendConfig.frame_sigma``;
+- between submaps, between the shared frame's two nodes: the odometry measurement, which the
+  pipeline hands over in submap coordinates (``H_prev_cur``), moved onto the nodes:
+  ``L = T_cam,prev H_prev_cur T_cam,cur^-1``. For the "calibration" alignment this is exactly the
+  calibration-and-scale link ``K_prev^-1 K_cur diag(s, s, s, 1)`` (``sl4slam.alignment.calibration``);
+  for a 15-DOF fit it is that fit seen from the shared camera. Its information (from
+  ``sl4slam.backend.evidence``, in the tangent of ``H_prev_cur``) is moved with it by the adjoint
+  (:func:`transport_information`), so the edge claims the same certainty about the same thing;
+- loops: between the retrieved frame's node (in its old submap) and the query keyframe's node, the
+  loop measurement moved the same way;
+- a prior (``prior_sigma``) on the first node at ``T_cam_submap^-1`` of the first keyframe, so the
+  world frame is submap 0's as in the submap graph; a weak prior (``segment_sigma``) on the first
+  node of every new map segment.
+
+Without loops the graph is a tree (chains joined by single links), so every factor is met exactly
+and the estimate equals the submap graph's with the same odometry measurements, whatever the sigmas:
+the designs differ only where loops close, where this graph also bends the links inside submaps.
+
+Incremental: the nodes live in an iSAM2 graph (:class:`~sl4slam.backend.sl4.SL4Backend` with node
+numbers as ids); a submap adds a chain of nodes hanging off the previous submap's last node, which
+iSAM2 eliminates at the top of its Bayes tree, so the cost of a submap does not grow with the map.
+A failed update is rolled back (nodes and submaps) before :class:`BackendUpdateError` is raised.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import BackendConfig
+from ..geometry import normalize_sl4, se3_inverse, to_4x4
+from .base import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
+from .sl4 import SL4Backend
+
+
+def sl4_adjoint(A: np.ndarray, generators: np.ndarray) -> np.ndarray:
+    """``(dim, dim)`` matrix of ``xi -> vee(A hat(xi) A^-1)`` in the basis ``generators`` ``(dim, 4, 4)``
+    (orthonormal in the Frobenius inner product, as GTSAM's SL(4) basis is)."""
+    A = np.asarray(A, dtype=np.float64)
+    conjugated = np.einsum("ij,mjk,kl->mil", A, generators, np.linalg.inv(A))  # A G_m A^-1
+    return np.einsum("nij,mij->nm", generators, conjugated)
+
+
+def transport_information(information: np.ndarray, A: np.ndarray, generators: np.ndarray) -> np.ndarray:
+    """Information of a measurement ``H`` re-expressed for ``A H B`` (any ``B``).
+
+    A between factor holds ``Z = H^-1`` with noise ``Z exp(xi)`` (``sl4slam.backend.base``); for
+    ``A H B`` that is ``B^-1 Z A^-1 exp(Ad_A xi)``, so the covariance becomes ``Ad_A C Ad_A^T`` and the
+    information ``Ad_A^-T I Ad_A^-1``.
+    """
+    Ad_inv = np.linalg.inv(sl4_adjoint(A, generators))
+    moved = Ad_inv.T @ np.asarray(information, dtype=np.float64) @ Ad_inv
+    return 0.5 * (moved + moved.T)
+
+
+@dataclass
+class _Submap:
+    nodes: list[int]
+    frames: SubmapFrames
+
+    def node_of(self, frame_index: int) -> tuple[int, np.ndarray]:
+        """The node of ``frame_index`` in this submap and the frame's extrinsic here."""
+        if frame_index not in self.frames.frame_indices:
+            raise ValueError(f"frame {frame_index} has no node in this submap (frames {list(self.frames.frame_indices)})")
+        k = self.frames.frame_indices.index(frame_index)
+        return self.nodes[k], self.frames.T_cam_submap[k]
+
+
+class KeyframeBackend(Backend):
+    """The keyframe graph of the module docstring, behind the same interface as the submap graph.
+
+    Args:
+        config: sigmas (``frame_sigma`` for the links inside submaps), the loop kernel and iSAM2's
+            thresholds (``BackendConfig``).
+
+    Attributes:
+        nodes: the iSAM2 graph of keyframe nodes (ids: node numbers).
+    """
+
+    kind = "sl4"
+    dim = 15
+
+    def __init__(self, config: BackendConfig) -> None:
+        config.validate()
+        self.config = config
+        self.nodes = SL4Backend(config)
+        self._generators = self.nodes.generators()
+        self._frame_information = np.eye(self.dim) / config.frame_sigma**2
+        self._submaps: dict[int, _Submap] = {}
+        self._order: list[int] = []
+        self._segments: list[int] = []
+        self._pending: list[int] = []
+        self._next_node = 0
+
+    # ------------------------------------------------------------------ building
+    def _check_frames(self, submap_id: int, frames: SubmapFrames | None) -> SubmapFrames:
+        if isinstance(submap_id, bool) or not isinstance(submap_id, (int, np.integer)) or submap_id < 0:
+            raise ValueError(f"submap id must be a non-negative integer, got {submap_id!r}")
+        if submap_id in self._submaps:
+            raise ValueError(f"submap {submap_id} was already added")
+        if frames is None or len(frames.frame_indices) == 0:
+            raise ValueError(f"the keyframe graph needs the keyframes of submap {submap_id} (frames=SubmapFrames(...))")
+        T = np.asarray(frames.T_cam_submap, dtype=np.float64)
+        if T.shape != (len(frames.frame_indices), 4, 4) or not np.isfinite(T).all():
+            raise ValueError(f"submap {submap_id}: T_cam_submap must be finite, shape ({len(frames.frame_indices)}, 4, 4)")
+        return SubmapFrames(tuple(int(i) for i in frames.frame_indices), T, bool(frames.shared))
+
+    def _new_nodes(self, count: int) -> list[int]:
+        nodes = list(range(self._next_node, self._next_node + count))
+        self._next_node += count
+        return nodes
+
+    def _chain(self, nodes: list[int], frames: SubmapFrames) -> None:
+        """Consecutive keyframes of a submap: their relative pose, isotropic ``frame_sigma``."""
+        T = frames.T_cam_submap
+        for k in range(1, len(nodes)):
+            self.nodes.add_submap(nodes[k], T[k - 1] @ se3_inverse(T[k]), self._frame_information)
+
+    def _register(self, submap_id: int, nodes: list[int], frames: SubmapFrames, segment: bool) -> None:
+        self._submaps[submap_id] = _Submap(nodes, frames)
+        self._order.append(submap_id)
+        self._pending.append(submap_id)
+        if segment:
+            self._segments.append(submap_id)
+
+    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, information: np.ndarray | None = None,
+                   frames: SubmapFrames | None = None) -> None:
+        """Add the submap's keyframe nodes, chained, and link its first (shared) frame to the same
+        frame's node in the previous submap by ``H_prev_cur`` (see the module doc). The first
+        submap takes ``H_prev_cur=None`` and anchors the world."""
+        frames = self._check_frames(submap_id, frames)
+        nodes = self._new_nodes(len(frames.frame_indices))
+        T = frames.T_cam_submap
+        if not self._order:
+            if H_prev_cur is not None:
+                raise ValueError("the first submap anchors the world frame: pass H_prev_cur=None")
+            self.nodes.anchor(nodes[0], se3_inverse(T[0]))
+        else:
+            if H_prev_cur is None:
+                raise ValueError(f"submap {submap_id} needs H_prev_cur (only the first submap takes None)")
+            previous = self._submaps[self._order[-1]]
+            shared = previous.frames.frame_indices[-1]
+            if not frames.shared or frames.frame_indices[0] != shared:
+                raise ValueError(f"submap {submap_id} must start with the previous submap's last keyframe "
+                                 f"({shared}) to be linked to it; got frames {list(frames.frame_indices)}")
+            T_prev = previous.frames.T_cam_submap[-1]
+            link = T_prev @ np.asarray(H_prev_cur, dtype=np.float64) @ se3_inverse(T[0])
+            moved = None if information is None else transport_information(information, T_prev, self._generators)
+            self.nodes.add_submap(nodes[0], normalize_sl4(link), moved)
+        self._chain(nodes, frames)
+        self._register(submap_id, nodes, frames, segment=not self._order)
+
+    def start_segment(self, submap_id: int, H_world_guess: np.ndarray, frames: SubmapFrames | None = None) -> None:
+        """Add the submap's chain with a weak prior (``segment_sigma``) on its first node at
+        ``H_world_guess T_cam_submap^-1``."""
+        frames = self._check_frames(submap_id, frames)
+        nodes = self._new_nodes(len(frames.frame_indices))
+        guess = to_4x4(np.asarray(H_world_guess, dtype=np.float64)) @ se3_inverse(frames.T_cam_submap[0])
+        self.nodes.start_segment(nodes[0], guess)
+        self._chain(nodes, frames)
+        self._register(submap_id, nodes, frames, segment=True)
+
+    def _placed(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray | None,
+                frames: tuple[int, int] | None) -> tuple[int, int, np.ndarray, np.ndarray | None]:
+        """A loop ``H_i_j`` (submap coordinates) as a measurement between two keyframe nodes."""
+        for submap_id in (i, j):
+            if submap_id not in self._submaps:
+                raise ValueError(f"loop refers to submap {submap_id}, which was not added")
+        if i == j:
+            raise ValueError(f"a loop needs two different submaps, got {i} twice")
+        frame_i, frame_j = frames if frames is not None else (self._submaps[i].frames.frame_indices[0],
+                                                              self._submaps[j].frames.frame_indices[0])
+        node_i, T_i = self._submaps[i].node_of(frame_i)
+        node_j, T_j = self._submaps[j].node_of(frame_j)
+        H = normalize_sl4(T_i @ np.asarray(H_i_j, dtype=np.float64) @ se3_inverse(T_j))
+        moved = None if information is None else transport_information(information, T_i, self._generators)
+        return node_i, node_j, H, moved
+
+    def add_loop(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray | None = None,
+                 frames: tuple[int, int] | None = None) -> None:
+        """Add a loop between the node of ``frames[0]`` in submap ``i`` and of ``frames[1]`` in ``j``
+        (default: the submaps' first keyframes)."""
+        self.nodes.add_loop(*self._placed(i, j, H_i_j, information, frames))
+
+    def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray,
+                  frames: tuple[int, int] | None = None) -> float:
+        """See :meth:`Backend.loop_chi2`, on the two keyframe nodes the loop ties."""
+        node_i, node_j, H, moved = self._placed(i, j, H_i_j, information, frames)
+        return self.nodes.loop_chi2(node_i, node_j, H, moved)
+
+    def update(self) -> None:
+        """One iSAM2 step (see :meth:`FactorGraphBackend.update`); on failure the submaps added
+        since the last update are dropped with their nodes."""
+        try:
+            self.nodes.update()
+        except BackendUpdateError:
+            for submap_id in self._pending:
+                del self._submaps[submap_id]
+                self._order.remove(submap_id)
+                if submap_id in self._segments:
+                    self._segments.remove(submap_id)
+            self._pending = []
+            raise
+        self._pending = []
+
+    # ------------------------------------------------------------------ results
+    def H_world_submap(self, submap_id: int) -> np.ndarray:
+        """Current estimate of submap ``submap_id`` through its first keyframe's node."""
+        if submap_id not in self._submaps:
+            raise KeyError(f"submap {submap_id} was not added")
+        submap = self._submaps[submap_id]
+        return normalize_sl4(self.nodes.H_world_submap(submap.nodes[0]) @ submap.frames.T_cam_submap[0])
+
+    def world_estimate(self, final: bool = False) -> WorldEstimate:
+        """Every submap and every keyframe (through its own node), from iSAM2 or polished (``final``).
+
+        Vectorized over the nodes (thousands of them): ``X_n T_cam_submap`` for all at once.
+        """
+        X = self.nodes.estimate_matrices(final)
+        row = {node: k for k, node in enumerate(self.nodes.submap_ids)}
+        nodes, T, frame_of, first = [], [], [], []
+        for submap_id in self._order:
+            submap = self._submaps[submap_id]
+            for k, node in enumerate(submap.nodes):
+                nodes.append(row[node])
+                T.append(submap.frames.T_cam_submap[k])
+                frame_of.append(submap.frames.frame_indices[k] if k in submap.frames.new else None)
+                first.append(submap_id if k == 0 else None)
+        H = np.matmul(X[nodes], np.asarray(T)) if nodes else np.zeros((0, 4, 4))
+        per_submap = {s: H[i] for i, s in enumerate(first) if s is not None}
+        per_keyframe = {f: H[i] for i, f in enumerate(frame_of) if f is not None}
+        return WorldEstimate(per_submap, per_keyframe)
+
+    def estimates(self) -> dict[int, np.ndarray]:
+        return self.world_estimate().H_world_submap
+
+    def final_estimates(self) -> dict[int, np.ndarray]:
+        return self.world_estimate(final=True).H_world_submap
+
+    @property
+    def num_submaps(self) -> int:
+        return len(self._order)
+
+    @property
+    def num_nodes(self) -> int:
+        return self.nodes.num_submaps
+
+    @property
+    def num_loops(self) -> int:
+        return self.nodes.num_loops
+
+    @property
+    def segments(self) -> list[int]:
+        return list(self._segments)
+
+    @property
+    def submap_ids(self) -> list[int]:
+        return list(self._order)
+
+    def generators(self) -> np.ndarray:
+        return self._generators
