@@ -120,7 +120,7 @@ def test_device_and_dtype_resolution():
     assert resolve_compute_dtype("bf16", cpu) == torch.bfloat16
     assert resolve_compute_dtype("fp16", torch.device("cuda")) == torch.float16
     with pytest.raises(UserError):
-        resolve_compute_dtype("int8", cpu)
+        resolve_compute_dtype("int4", cpu)
     with pytest.raises(UserError):
         VGGTFrontend(VGGTConfig(device="cpu", preprocess_mode="stretch"))
     if not torch.cuda.is_available():

@@ -712,17 +712,25 @@ class VGGTConfig(Section):
 
     section: ClassVar[str] = "vggt"
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
-        "dtype": ("auto", "fp32", "bf16", "fp16"), "preprocess_mode": ("crop", "pad")}
-    advanced: ClassVar[frozenset[str]] = frozenset({"match_layer"})
+        "dtype": ("auto", "fp32", "bf16", "fp16", "int8"), "preprocess_mode": ("crop", "pad")}
+    flag_names: ClassVar[dict[str, str]] = {"max_memory_gb": "--max-memory"}
+    advanced: ClassVar[frozenset[str]] = frozenset({"match_layer", "head_chunk_frames"})
 
     weights: str = "facebook/VGGT-1B"
     """Local ``.pt`` / ``.safetensors`` file or Hugging Face hub id (model.pt)."""
     device: str = "auto"
     """"auto" (CUDA when available), "cpu", "cuda" or "cuda:N"."""
     dtype: str = "auto"
-    """"auto" (bf16 on GPUs that support it, else fp16; fp32 on CPU), "fp32", "bf16", "fp16"."""
+    """"auto" (bf16 on GPUs that support it, else fp16; fp32 on CPU), "fp32", "bf16", "fp16", or
+    "int8" (CPU: int8 linear layers in the aggregator; measured speed and error in
+    benchmarks/results/vggt.md)."""
     preprocess_mode: str = "crop"
     """VGGT preprocessing: "crop" (width 518) or "pad" (square 518)."""
+    max_memory_gb: float = 0.0
+    """Memory budget of a VGGT forward in GiB (CPU: resident size; GPU: allocated memory), 0: no
+    limit. Picks the dense heads' chunk size per submap and refuses a submap that cannot fit."""
+    head_chunk_frames: int = 8
+    """Frames the dense heads decode at once (reference VGGT: 8); the most --max-memory may pick."""
     match_layer: int = 21
     """Global-attention block (0-based) whose attention gives the loop check's image-match ratio
     (VGGT-SLAM 2.0: 21, the 22nd of VGGT-1B's 24; ``sl4slam.models.vggt.attention``)."""
@@ -734,6 +742,10 @@ class VGGTConfig(Section):
         device_ok = self.device in ("auto", "cpu", "cuda") or (
             self.device.startswith("cuda:") and self.device[5:].isdigit())
         self._require("device", device_ok, "auto, cpu, cuda or cuda:N")
+        self._require("max_memory_gb", self.max_memory_gb >= 0, ">= 0 GiB (0: no limit)")
+        self._require("head_chunk_frames", self.head_chunk_frames >= 1, "at least 1 frame")
+        self._require("dtype", not (self.dtype == "int8" and self.device.startswith("cuda")),
+                      "auto, fp32, bf16 or fp16 on a GPU (int8 runs on the CPU only)")
 
 
 @dataclass

@@ -10,9 +10,14 @@ Loop check: asked for ``match_pairs``, the frontend also returns VGGT-SLAM 2.0's
 each pair of slots, read from the attention of global block ``VGGTConfig.match_layer`` during the same
 forward pass (``sl4slam.models.vggt.attention``).
 
-Precision: float32 on CPU; on CUDA the aggregator runs under bf16 (or fp16 where bf16 is not
-supported) autocast with its weights stored in that dtype, and the heads run in float32, as in
-the released model.
+Precision (``--dtype``, :mod:`sl4slam.models.vggt.precision`): "auto" is float32 on CPU and bf16
+(fp16 where bf16 is not supported) on CUDA; half precision stores the aggregator's weights in that
+dtype and runs it under autocast; "int8" (CPU) quantizes the aggregator's linear layers. The heads
+always run in float32, as in the released model.
+
+Memory: the dense heads decode ``head_chunk_frames`` frames at a time; with ``--max-memory GB`` the
+chunk is chosen per submap from an estimate of the peak (:mod:`sl4slam.models.vggt.memory`), and a
+submap that cannot fit is refused with the largest size that would.
 """
 
 from __future__ import annotations
@@ -26,14 +31,22 @@ import torch
 from ..config import VGGTConfig
 from ..errors import UserError
 from ..models.vggt.attention import MatchRatioProbe
+from ..models.vggt.memory import (
+    GIB,
+    estimate_peak_bytes,
+    largest_fitting_frames,
+    plan_memory,
+)
 from ..models.vggt.model import VGGT
 from ..models.vggt.pose_encoding import pose_encoding_to_extri_intri
+from ..models.vggt.precision import Precision, apply_precision, resolve_precision
 from ..models.vggt.preprocess import GridTransform, preprocess_images, to_uint8_rgb
 from ..types import Frame, SubmapPrediction
 
 logger = logging.getLogger(__name__)
 
-_HALF_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
+# Largest image side on VGGT's grid (both preprocessing modes): the worst case for memory.
+_GRID_SIDE = 518
 
 
 def resolve_device(device: str) -> torch.device:
@@ -45,17 +58,18 @@ def resolve_device(device: str) -> torch.device:
     return torch.device(device)
 
 
+def resolve_mode(dtype: str, device: torch.device) -> Precision:
+    """The precision mode of ``--dtype`` on ``device`` (one line on bad input)."""
+    try:
+        return resolve_precision(dtype, device)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
 def resolve_compute_dtype(dtype: str, device: torch.device) -> torch.dtype:
-    """Autocast dtype of the aggregator: float32 means no autocast."""
-    if dtype not in ("auto", "fp32", "bf16", "fp16"):
-        raise UserError(f"unknown VGGT dtype '{dtype}': use auto, fp32, bf16 or fp16")
-    if dtype == "auto":
-        if device.type != "cuda":
-            return torch.float32
-        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
-    if dtype == "fp32":
-        return torch.float32
-    return _HALF_DTYPES[dtype]
+    """Autocast dtype of the aggregator: float32 means no autocast (also for int8 linears)."""
+    precision = resolve_mode(dtype, device)
+    return precision.autocast or torch.float32
 
 
 class VGGTFrontend:
@@ -76,16 +90,22 @@ class VGGTFrontend:
             raise UserError(f"unknown VGGT preprocessing mode '{config.preprocess_mode}': use crop or pad")
         self.config = config
         self.device = resolve_device(config.device)
-        self.compute_dtype = resolve_compute_dtype(config.dtype, self.device)
+        self.precision = resolve_mode(config.dtype, self.device)
+        self.compute_dtype = self.precision.autocast or torch.float32
         self.with_points = with_points
+        self.heads = ("camera", "depth", "point") if with_points else ("camera", "depth")
         self.last_transforms: list[GridTransform] = []
         self._model = self._prepare(model) if model is not None else None
 
     def _prepare(self, model: VGGT) -> VGGT:
-        model = model.to(self.device).eval()
-        if self.compute_dtype != torch.float32 and self.device.type == "cuda":
-            # Half-precision aggregator weights halve its memory; the heads stay float32.
-            model.aggregator.to(self.compute_dtype)
+        # Weights are converted on the CPU, one copy each, before they move to the device.
+        model = apply_precision(model.eval(), self.precision).to(self.device)
+        if self.config.max_memory_gb > 0:
+            largest = largest_fitting_frames(
+                model.config, self.precision, int(self.config.max_memory_gb * GIB), _GRID_SIDE, _GRID_SIDE,
+                self.device.type, self.heads)
+            logger.info("VGGT %s on %s: the largest submap that fits in --max-memory %g GiB is %d frames (at %dx%d)",
+                        self.precision.mode, self.device.type, self.config.max_memory_gb, largest, _GRID_SIDE, _GRID_SIDE)
         return model
 
     def prepare(self) -> None:
@@ -98,23 +118,45 @@ class VGGTFrontend:
         if self._model is None:
             from ..models.vggt.weights import load_vggt
 
-            self._model = self._prepare(load_vggt(self.config.weights, device="cpu", dtype=torch.float32))
+            # The checkpoint's own dtype (memory-mapped): each weight is converted once, in _prepare.
+            model = load_vggt(self.config.weights, device="cpu", dtype=None)
+            if not self.with_points:
+                model.point_head = None  # its weights are never read
+            self._model = self._prepare(model)
         return self._model
+
+    def head_chunk(self, frames: int, height: int, width: int) -> int:
+        """Frames the dense heads decode at once for a submap of ``frames`` images ``height`` x ``width``.
+
+        Raises:
+            UserError: ``--max-memory`` is set and the submap cannot fit (names the largest that can).
+        """
+        if self.config.max_memory_gb <= 0:
+            return self.config.head_chunk_frames
+        plan = plan_memory(self.model.config, self.precision, self.config.max_memory_gb, frames, height, width,
+                           self.config.head_chunk_frames, self.device.type, self.heads)
+        return plan.head_chunk_frames
+
+    def estimated_peak_bytes(self, frames: int, height: int, width: int) -> int:
+        """Estimated peak memory of one forward (see :mod:`sl4slam.models.vggt.memory`)."""
+        chunk = self.head_chunk(frames, height, width)
+        return estimate_peak_bytes(self.model.config, self.precision, frames, height, width, chunk,
+                                   self.device.type, self.heads)
 
     @torch.inference_mode()
     def predict(self, images: torch.Tensor, match_pairs: Sequence[tuple[int, int]] = ()) -> dict[str, torch.Tensor]:
         """Raw model outputs for ``(S, 3, H, W)`` images in [0, 1] on the model's grid; with
         ``match_pairs`` also ``"match_ratios"`` ``(len(match_pairs),)`` (numpy) from the same pass."""
         model = self.model
-        heads = ("camera", "depth", "point") if self.with_points else ("camera", "depth")
+        model.set_head_chunk_frames(self.head_chunk(images.shape[0], *images.shape[-2:]))
         images = images.to(self.device)
-        use_autocast = self.compute_dtype != torch.float32
+        autocast = self.precision.autocast
         probe = MatchRatioProbe(model.aggregator, match_pairs, len(images), self.config.match_layer) if match_pairs else None
-        with torch.autocast(device_type=self.device.type, dtype=self.compute_dtype, enabled=use_autocast):
+        with torch.autocast(device_type=self.device.type, dtype=autocast or torch.float32, enabled=autocast is not None):
             if probe is None:
-                return model(images, heads=heads)
+                return model(images, heads=self.heads)
             with probe:
-                outputs = model(images, heads=heads)
+                outputs = model(images, heads=self.heads)
         outputs["match_ratios"] = probe.ratios[0]
         return outputs
 

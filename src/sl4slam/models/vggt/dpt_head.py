@@ -219,7 +219,7 @@ class DPTHead(nn.Module):
             tokens = aggregated_tokens[layer]
             if tokens is None:
                 raise ValueError(f"aggregator output {layer} was not kept but the DPT head needs it")
-            tokens = tokens[:, start:stop, patch_start_idx:]
+            tokens = tokens[:, start:stop, patch_start_idx:].float()
             batch, frames = tokens.shape[:2]
             x = self.norm(tokens.reshape(batch * frames, rows * cols, tokens.shape[-1]))
             x = x.permute(0, 2, 1).reshape(batch * frames, -1, rows, cols)

@@ -102,7 +102,8 @@ class VGGT(nn.Module):
     - ``depth`` ``(B, S, H, W, 1)`` and ``depth_conf`` ``(B, S, H, W)``.
     - ``world_points`` ``(B, S, H, W, 3)`` (first camera's frame) and ``world_points_conf``.
 
-    The heads always run in float32 (also under CUDA autocast), as in the released model.
+    The heads always run in float32 (also under autocast), as in the released model; the dense
+    heads decode ``frames_chunk_size`` frames at a time (:meth:`set_head_chunk_frames`).
     """
 
     def __init__(self, config: VGGTModelConfig | None = None) -> None:
@@ -146,6 +147,14 @@ class VGGT(nn.Module):
         self.point_head = dense_head(4, "inv_log") if config.enable_point else None
         self.depth_head = dense_head(2, "exp") if config.enable_depth else None
 
+    def set_head_chunk_frames(self, frames: int) -> None:
+        """Frames the dense heads decode at once (peak memory grows with it; outputs do not change)."""
+        if frames < 1:
+            raise ValueError(f"head chunk must be at least 1 frame, got {frames}")
+        for head in (self.depth_head, self.point_head):
+            if head is not None:
+                head.frames_chunk_size = frames
+
     def needed_layers(self, point_head: bool = True) -> set[int]:
         """Aggregator outputs read by the enabled heads (the rest need not be kept)."""
         layers = {self.config.depth - 1} if self.camera_head is not None else set()
@@ -172,17 +181,18 @@ class VGGT(nn.Module):
             predictions["aggregated_tokens"] = tokens
         device_type = images.device.type
         with torch.autocast(device_type=device_type, enabled=False):
-            tokens32 = [t.float() if t is not None else None for t in tokens]
+            # The dense heads convert their frame chunk to float32 themselves, so half-precision
+            # aggregator outputs are never held twice.
             if "camera" in heads and self.camera_head is not None:
-                pose_list = self.camera_head(tokens32[-1][:, :, 0])
+                pose_list = self.camera_head(tokens[-1][:, :, 0].float())
                 predictions["pose_enc"] = pose_list[-1]
                 predictions["pose_enc_list"] = pose_list
             if "depth" in heads and self.depth_head is not None:
-                depth, depth_conf = self.depth_head(tokens32, image_hw, patch_start_idx)
+                depth, depth_conf = self.depth_head(tokens, image_hw, patch_start_idx)
                 predictions["depth"] = depth
                 predictions["depth_conf"] = depth_conf
             if run_point:
-                points, points_conf = self.point_head(tokens32, image_hw, patch_start_idx)
+                points, points_conf = self.point_head(tokens, image_hw, patch_start_idx)
                 predictions["world_points"] = points
                 predictions["world_points_conf"] = points_conf
         return predictions
