@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from sl4slam.alignment import HybridAligner
 from sl4slam.alignment.sim3 import calibration_scale_link
-from sl4slam.backend import BackendUpdateError, KeyframeBackend, SL4Backend, SubmapFrames, make_backend
+from sl4slam.backend import BackendUpdateError, KeyframeBackend, SubmapFrames, make_backend
 from sl4slam.backend.keyframe import sl4_adjoint, transport_information
 from sl4slam.config import AlignmentConfig, BackendConfig, SLAMConfig, alignment_model, attention_check
 from sl4slam.edges import is_camera_link

@@ -850,9 +850,9 @@ class UpgradeConfig(Section):
     metric_residual: float = 0.002
     """Never make it worse: cameras whose constraint residual (skew, aspect and principal-point
     offset over the focal length) is already below this are metric to within the upgrade's own
-    noise and are left alone. TUM fr1/desk with an undistorted first submap: 0.0015, and the
-    upgrade moved the keyframes by 0.2 mm (2x the ATE of 0.15 mm); a 0.05 distortion: 0.007 and
-    more (benchmarks/bench_upgrade_pipeline.py)."""
+    noise and are left alone. TUM fr1/desk with an undistorted first submap: 0.0008, where the
+    upgrade moved the keyframes by 0.2 mm (2x the ATE of 0.15 mm, 20x the Sim(3) graph's); a
+    0.05 distortion: 0.006 and more (benchmarks/bench_upgrade_pipeline.py)."""
 
     def validate(self) -> None:
         super().validate()
