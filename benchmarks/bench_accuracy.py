@@ -25,6 +25,8 @@ from sl4slam.pipeline import SLAMPipeline
 from sl4slam.retrieval import make_retrieval
 from sl4slam.synthetic import write_synthetic_sequence
 
+from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
+
 HERE = Path(__file__).resolve().parent
 DISTORTIONS = {
     "none": dict(perspective=0.0, shear=0.0, scale=0.0),
@@ -107,9 +109,7 @@ def main() -> None:
         *loop_lines,
         "",
     ]
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_report(args.out, lines)
 
 
 if __name__ == "__main__":

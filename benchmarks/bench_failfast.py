@@ -26,6 +26,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
+
 HERE = Path(__file__).resolve().parent
 SEQUENCE = HERE.parent.parent / "shared" / "data" / "tum_rgbd_fr1_desk"
 
@@ -86,9 +88,7 @@ def main() -> None:
         *rows,
         "",
     ]
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_report(args.out, lines)
 
 
 if __name__ == "__main__":

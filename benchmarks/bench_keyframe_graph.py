@@ -51,6 +51,8 @@ from sl4slam.retrieval import make_retrieval  # noqa: E402
 from sl4slam.synthetic import write_synthetic_sequence  # noqa: E402
 from sl4slam.types import Frame  # noqa: E402
 
+from _report import write_report  # noqa: E402 (benchmarks/ is on sys.path: the scripts run from there)
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_pipeline import LapSource  # noqa: E402  (the same lap replay as the pipeline benchmark)
@@ -302,9 +304,7 @@ def main() -> None:
              f"--submaps {args.submaps} --parts {args.parts} --worlds {args.worlds} --designs {args.designs} "
              f"--verification-submaps {args.verification_submaps} --verification-seeds {args.verification_seeds} "
              f"--verification-graphs {args.verification_graphs}`.", "", *sections]
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_report(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -30,6 +30,8 @@ from sl4slam.retrieval import make_retrieval
 from sl4slam.synthetic import write_synthetic_sequence
 from sl4slam.types import Frame
 
+from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
+
 HERE = Path(__file__).resolve().parent
 STAGES = ("retrieval", "points", "alignment", "loops", "backend", "store")
 
@@ -161,9 +163,7 @@ def main() -> None:
         f"process peak RSS {rss:.0f} MiB after {len(pipeline.keyframes)} keyframes.",
         "",
     ]
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_report(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -35,6 +35,8 @@ from sl4slam.pipeline import SLAMPipeline
 from sl4slam.retrieval import make_retrieval
 from sl4slam.synthetic import write_synthetic_sequence
 
+from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
+
 HERE = Path(__file__).resolve().parent
 WORLD = HERE / "out" / "synthetic_160x120"
 # half the demo's resolution: the same keyframes at half the disparity threshold, 4x fewer pixels
@@ -178,9 +180,7 @@ def main() -> None:
         "",
         *(["Runs that aborted: " + "; ".join(errors), ""] if errors else []),
     ]
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(text))
-    print("\n".join(text))
+    write_report(args.out, text)
 
 
 if __name__ == "__main__":

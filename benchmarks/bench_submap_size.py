@@ -32,6 +32,8 @@ from sl4slam.pipeline import SLAMPipeline
 from sl4slam.retrieval import make_retrieval
 from sl4slam.synthetic import write_synthetic_sequence
 
+from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
+
 HERE = Path(__file__).resolve().parent
 SIZES = (8, 16, 32)
 # VGGT-SLAM, TUM RGB-D, ATE RMSE (m) by submap size (keyframes per submap).
@@ -158,12 +160,7 @@ def main() -> None:
         *per_run,
         "",
     ]
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text("\n".join(lines))
-    os.replace(tmp, out)
-    print("\n".join(lines))
+    write_report(args.out, lines)
 
 
 if __name__ == "__main__":
