@@ -42,6 +42,7 @@ def run(world: Path, distortion: str, backend: str, loops: bool, seed: int) -> t
     config.sim.distort_first_submap = False
     config.sim.seed = seed
     config.backend.kind = backend
+    config.backend.graph = "submap"  # SL(4) against Sim(3) in VGGT-SLAM's graph: per-submap distortion
     config.retrieval.kind = "orb" if loops else "none"
     start = time.perf_counter()
     pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))

@@ -72,10 +72,13 @@ DESIGNS = {
 }
 
 
-def design_config(design: str, profile: str, seed: int, retrieval: str = "orb") -> SLAMConfig:
+def design_config(design: str, profile: str, seed: int, retrieval: str = "orb",
+                  perspective: float | None = None) -> SLAMConfig:
     graph, model, _ = DESIGNS[design]
     config = SLAMConfig(frontend="simulated")
     apply_sim_profile(config.sim, profile)
+    if perspective is not None:
+        config.sim.perspective = perspective
     config.sim.seed = seed
     config.backend.graph = graph
     config.alignment.model = model
@@ -100,8 +103,8 @@ def worlds(work: Path, names: list[str]) -> dict[str, Path]:
 
 
 # ---------------------------------------------------------------------------- accuracy
-def accuracy_run(world: Path, design: str, profile: str, seed: int) -> dict:
-    config = design_config(design, profile, seed)
+def accuracy_run(world: Path, design: str, profile: str, seed: int, perspective: float | None = None) -> dict:
+    config = design_config(design, profile, seed, perspective=perspective)
     start = time.perf_counter()
     pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
     result = pipeline.run(open_source(str(world)), progress=False)
@@ -114,19 +117,21 @@ def accuracy_run(world: Path, design: str, profile: str, seed: int) -> dict:
             "reasons": sorted({e.reason.split(" (")[0] for e in edges if e.kind == "loop" and not e.accepted and e.reason})}
 
 
-def accuracy(work: Path, profile: str, seeds: int, names: list[str], designs: list[str]) -> list[str]:
-    lines = [f"### Accuracy ({profile} profile, {seeds} seeds)", "",
+def accuracy(work: Path, profile: str, seeds: int, names: list[str], designs: list[str],
+             perspective: float | None = None) -> list[str]:
+    setting = f"{profile} profile" + (f", perspective {perspective}" if perspective is not None else "")
+    lines = [f"### Accuracy ({setting}, {seeds} seeds)", "",
              "ATE RMSE in metres (`evo_ape -as`), median and range over the seeds; counts are means per run. "
              "Fallbacks: odometry edges a weaker model measured (planar: those on a flat or planar shared frame).", ""]
     for world_name, world in worlds(work, names).items():
         table: dict[str, list[dict]] = {}
         for design in designs:
-            table[design] = [accuracy_run(world, design, profile, seed) for seed in range(seeds)]
+            table[design] = [accuracy_run(world, design, profile, seed, perspective) for seed in range(seeds)]
             ates = [r["ate"] for r in table[design]]
             print(f"{world_name} {design}: ATE median {np.median(ates):.4f}", flush=True)
-        base = np.median([r["ate"] for r in table["submap"]])
-        lines += [f"**{world_name}** ({table['submap'][0]['submaps']} submaps)", "",
-                  "| design | ATE median | range | / submap graph | loops accepted | rejected | fallbacks (planar) "
+        base = np.median([r["ate"] for r in table[designs[0]]])
+        lines += [f"**{world_name}** ({table[designs[0]][0]['submaps']} submaps)", "",
+                  f"| design | ATE median | range | / {designs[0]} | loops accepted | rejected | fallbacks (planar) "
                   "| segments | seconds | rejection reasons |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
         for design, runs in table.items():
@@ -194,6 +199,8 @@ def cost_child(work: Path, design: str, profile: str, submaps: int) -> dict:
     nodes = getattr(pipeline.backend, "num_nodes", pipeline.backend.num_submaps)
     return {"backend": [s.get("backend", 0.0) for s in per], "loops": [s.get("loops", 0.0) for s in per],
             "closed": list(pipeline.submap_loops), "nodes": nodes, "keyframes": len(pipeline.keyframes),
+            "segments": len(pipeline.backend.segments),
+            "failed_updates": sum(1 for e in pipeline.edges if e.reason and "could not be solved" in e.reason),
             "loops_total": pipeline.num_loops, "polish": polish, **peak_memory()}
 
 
@@ -215,15 +222,17 @@ def cost(work: Path, profile: str, submaps: int) -> list[str]:
         rows.append(f"| {design} | {data['nodes']} | {np.median(backend[early]):.1f} | {np.median(backend[late]):.1f} | "
                     f"{ratio:.2f} | {np.median(backend[plain_early]):.1f} | {np.median(backend[plain_late]):.1f} | "
                     f"{np.median(loops[early]):.1f} | {np.median(loops[late]):.1f} | {data['loops_total']} | "
-                    f"{data['polish'] * 1000:.0f} | {data['peak_rss_mib']:.0f} |")
+                    f"{data['polish'] * 1000:.0f} | {data['peak_rss_mib']:.0f} | {data['segments']} | "
+                    f"{data['failed_updates']} |")
     return [f"### Per-submap cost ({submaps} submaps, lap replay of the synthetic world at 160x120, {profile} profile, "
             "ORB retrieval)", "",
             "Milliseconds per submap, medians over submaps 10-20 (early) and the last ten (late); *no-loop*: the "
             "submaps that closed no loop, which is what every submap pays (ten of each). Peak memory: the process "
             "running that graph alone (frames of the lap held decoded).", "",
             "| graph | nodes | backend early | backend late | late / early | no-loop early | no-loop late | "
-            "loops early | loops late | loops closed | final polish (ms) | peak RSS (MiB) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|", *rows, "",
+            "loops early | loops late | loops closed | final polish (ms) | peak RSS (MiB) | map segments | "
+            "failed graph updates |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|", *rows, "",
             "Backend late / early (all submaps; submaps that closed no loop): "
             + "; ".join(f"{d} {r:.2f}, {p:.2f}" for d, r, p in ratios) + ".", ""]
 
@@ -269,6 +278,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--profile", default="vggt", help="simulator profile of the accuracy part (exact, vggt, hard)")
+    parser.add_argument("--perspective", type=float, default=None,
+                        help="accuracy part: per-submap perspective distortion on top of the profile")
     parser.add_argument("--submaps", type=int, default=300, help="submaps of the cost part")
     parser.add_argument("--verification-submaps", type=int, default=24, help="submaps of each verification run")
     parser.add_argument("--verification-seeds", type=int, default=0, help="seeds of the verification part (0: --seeds)")
@@ -290,7 +301,8 @@ def main() -> None:
     parts = args.parts.split(",")
     sections: list[str] = []
     if "accuracy" in parts:
-        sections += accuracy(work, args.profile, args.seeds, args.worlds.split(","), args.designs.split(","))
+        sections += accuracy(work, args.profile, args.seeds, args.worlds.split(","), args.designs.split(","),
+                             args.perspective)
     if "cost" in parts:
         sections += cost(work, args.profile, args.submaps)
     if "verification" in parts:
@@ -301,6 +313,7 @@ def main() -> None:
              f"start); Python {platform.python_version()}. Date: {datetime.date.today()}. "
              f"Total {(time.perf_counter() - start) / 60:.0f} min.",
              f"Command: `python benchmarks/bench_keyframe_graph.py --seeds {args.seeds} --profile {args.profile} "
+        + (f"--perspective {args.perspective} " if args.perspective is not None else "") +
              f"--submaps {args.submaps} --parts {args.parts} --worlds {args.worlds} --designs {args.designs} "
              f"--verification-submaps {args.verification_submaps} --verification-seeds {args.verification_seeds} "
              f"--verification-graphs {args.verification_graphs}`.", "", *sections]

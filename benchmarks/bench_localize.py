@@ -41,6 +41,7 @@ def measure(name: str, path: Path, tau_disparity: float, submap_size: int, retri
     config.submap.size = submap_size
     config.retrieval.kind = retrieval
     config.sim.perspective = 0.1
+    config.backend.graph = "submap"  # the graph the recorded figures were measured on
     source = open_source(str(path))
     pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
     result = pipeline.run(source, progress=False)

@@ -77,6 +77,7 @@ def main() -> None:
     config.retrieval.kind = args.retrieval
     config.sim.perspective = args.perspective
     config.sim.distort_first_submap = False
+    config.backend.graph = "submap"  # the graph the recorded figures were measured on
     source = LapSource(base, laps=10_000)
     pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
     keyframe_seconds: list[float] = []

@@ -3,8 +3,8 @@
 VGGT-SLAM (Maggio et al., 2025) reports on TUM RGB-D that the ATE falls from 0.115 to 0.083 to
 0.053 m as submaps grow from 8 to 16 to 32 keyframes: fewer, longer windows mean fewer links whose
 errors add up. This benchmark runs the same sweep on the synthetic world (600 frames at 160x120 with
-a 12.5 px keyframe threshold: the demo's keyframes at half its resolution, as in ``bench_robustness.py``) with the simulated frontend's ``vggt`` error profile, the SL(4)
-backend, loop closure off and on (ORB retrieval), several simulator seeds. A run that stops with an
+a 12.5 px keyframe threshold: the demo's keyframes at half its resolution, as in ``bench_robustness.py``) with the simulated frontend's ``vggt`` error profile, an SL(4)
+graph (``--graph keyframe``, the default, or ``submap``, VGGT-SLAM's), loop closure off and on (ORB retrieval), several simulator seeds. A run that stops with an
 error is reported with the step that raised it and the message, and counts as failed.
 
     python benchmarks/bench_submap_size.py --seeds 5 --jobs 2
@@ -50,12 +50,12 @@ def failing_step(exc: BaseException) -> str:
     return f"{Path(last.filename).stem}.{last.name}"
 
 
-def run(world: Path, profile: str, size: int, loops: bool, seed: int) -> dict:
+def run(world: Path, profile: str, size: int, loops: bool, seed: int, graph: str = "keyframe") -> dict:
     config = SLAMConfig(frontend="simulated")
     config.sim = SimulatorConfig.from_profile(profile, seed=seed)
     config.submap.size = size
     config.keyframes.tau_disparity = TAU_DISPARITY
-    config.backend.kind = "sl4"
+    config.backend.kind, config.backend.graph = "sl4", graph
     config.retrieval.kind = "orb" if loops else "none"
     start = time.perf_counter()
     try:
@@ -91,6 +91,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=5, help="simulator seeds (every error draw)")
     parser.add_argument("--profile", default="vggt", choices=["exact", "vggt", "hard"])
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one process each)")
+    parser.add_argument("--graph", default="keyframe", choices=["keyframe", "submap"],
+                        help="SL(4) graph design (submap: VGGT-SLAM's, as the paper's curve)")
     parser.add_argument("--out", default=str(HERE / "results" / "submap_size.md"))
     args = parser.parse_args()
     world = HERE / "out" / "synthetic_160x120"
@@ -103,7 +105,7 @@ def main() -> None:
     per_run: list[str] = []
     cases = [(size, loops, seed) for loops in (False, True) for size in SIZES for seed in range(args.seeds)]
     with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
-        outcomes = pool.starmap(run, [(world, args.profile, size, loops, seed) for size, loops, seed in cases])
+        outcomes = pool.starmap(run, [(world, args.profile, size, loops, seed, args.graph) for size, loops, seed in cases])
     for (size, loops, seed), outcome in zip(cases, outcomes):
         table.setdefault((size, loops), []).append(outcome)
         ate = f"{outcome['ate']:.4f}" if outcome["ate"] is not None else "failed"
@@ -129,12 +131,12 @@ def main() -> None:
         for loops, v in falls.items()
     )
     lines = [
-        "## ATE by submap size under VGGT-like errors (synthetic world, SL(4) backend)",
+        f"## ATE by submap size under VGGT-like errors (synthetic world, SL(4) {args.graph} graph)",
         "",
         f"Machine: {os.cpu_count()}-core x86_64 CPU, no GPU, shared (load average {load_before:.1f} at the start); "
         f"Python {platform.python_version()}. Date: {datetime.date.today()}. "
         f"Total {(time.perf_counter() - started) / 60:.0f} min.",
-        f"Command: `python benchmarks/bench_submap_size.py --seeds {args.seeds} --jobs {args.jobs}"
+        f"Command: `python benchmarks/bench_submap_size.py --seeds {args.seeds} --jobs {args.jobs} --graph {args.graph}"
         + (f" --profile {args.profile}" if args.profile != "vggt" else "") + "`.",
         "World: 600 frames at 160x120 (one lap of the room with a floor-only stretch), keyframe threshold "
         f"{TAU_DISPARITY} px (the demo's keyframes at half its resolution). Simulated frontend with the `{args.profile}` error profile "

@@ -326,6 +326,7 @@ def bench_pipeline(tum: Path | None) -> list[str]:
             config = SLAMConfig(frontend="simulated")
             config.sim.perspective = 0.1
             config.sim.distort_first_submap = distort_first
+            config.backend.graph = "submap"  # the graph the recorded figures were measured on
             config.retrieval.kind = retrieval
             pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
             result = pipeline.run(open_source(str(path)), progress=False)

@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-ORDER = ["robustness", "submap_size", "accuracy", "upgrade_pipeline", "upgrade", "failfast", "pipeline", "ransac", "backend", "evaluation",
+ORDER = ["robustness", "submap_size", "submap_size_submap", "accuracy", "upgrade_pipeline", "upgrade", "failfast", "pipeline", "ransac", "backend", "evaluation",
          "keyframe_graph", "render", "retrieval_orb", "salad", "vggt", "localize", "export", "viewer"]
 HEADER = """# Benchmarks
 

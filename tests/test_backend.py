@@ -10,7 +10,7 @@ import pytest
 from scipy.linalg import expm, logm
 from scipy.spatial.transform import Rotation
 
-from sl4slam.backend import Backend, Sim3Backend, SL4Backend, make_backend
+from sl4slam.backend import Backend, BackendUpdateError, Sim3Backend, SL4Backend, make_backend
 from sl4slam.config import BackendConfig
 from sl4slam.errors import UserError
 
@@ -161,7 +161,7 @@ def test_noise_free_measurements_are_reproduced(kind):
         steps = [random_sim3(rng, 0.2, 0.5, 0.05) for _ in range(NUM_SUBMAPS - 1)]
     truth = chain(steps)
     loops = [(2, 20, np.linalg.inv(truth[2]) @ truth[20]), (15, 9, np.linalg.inv(truth[15]) @ truth[9])]
-    estimates = run(make_backend(BackendConfig(kind=kind)), steps, loops)
+    estimates = run(make_backend(BackendConfig(kind=kind, graph="submap")), steps, loops)
     assert sorted(estimates) == list(range(NUM_SUBMAPS))
     for k, H in estimates.items():
         assert H.dtype == np.float64 and H.shape == (4, 4)
@@ -242,10 +242,67 @@ def test_cauchy_kernel_resists_a_false_loop():
     assert moved_huber < moved_plain
 
 
+def test_loop_chi2_equals_the_batch_marginal_computation():
+    """The loop gate's chi-square (from iSAM2's Bayes tree) against the textbook formula with a batch
+    marginalization of the whole graph: e^T (A Sigma_ij A^T + Lambda^-1)^-1 e."""
+    truth, odometry = sl4_problem(seed=4, odometry_noise=0.003)
+    backend = SL4Backend(BackendConfig())
+    run(backend, odometry, [(2, 12, np.linalg.inv(truth[2]) @ truth[12])])
+    rng = np.random.default_rng(5)
+    measured = np.linalg.inv(truth[4]) @ truth[19] @ random_sl4(rng, 0.5)
+    information = np.diag(rng.uniform(1e4, 1e5, backend.dim))
+    chi2 = backend.loop_chi2(4, 19, measured, information)
+
+    values = backend.gtsam_values()
+    factor = backend.relative_factor(4, 19, measured, gtsam.noiseModel.Unit.Create(backend.dim))
+    blocks = dict(zip(factor.keys(), np.split(factor.linearize(values).jacobian()[0], 2, axis=1)))
+    keys = [backend.key(19), backend.key(4)]
+    A = np.concatenate([blocks[k] for k in keys], axis=1)
+    joint = gtsam.Marginals(backend.factor_graph(), values).jointMarginalCovariance(keys).fullMatrix()
+    error = np.asarray(factor.unwhitenedError(values))
+    expected = error @ np.linalg.solve(A @ joint @ A.T + np.linalg.inv(information), error)
+    # iSAM2's tree is linearized where its variables last moved by more than the relinearization threshold
+    assert chi2 > 1 and chi2 == pytest.approx(expected, rel=1e-3)
+
+
+class FailingLoopBackend(SL4Backend):
+    """GTSAM fails on the next loop update (as an indeterminate system would)."""
+
+    fail_next_loop = False
+
+    def _solve(self, factors, values, had_loops):
+        if had_loops and self.fail_next_loop:
+            self.fail_next_loop = False
+            raise RuntimeError("Indeterminate linear system detected near variable s9 (simulated)")
+        return super()._solve(factors, values, had_loops)
+
+
+def test_a_failed_loop_update_restores_the_estimate_it_started_from():
+    """A graph that fails to absorb a loop is rebuilt at the estimate it had, not at the nodes' first
+    guesses (which an earlier loop has left behind), and keeps growing."""
+    truth, odometry = sl4_problem(seed=6, odometry_noise=0.03)
+    backend = FailingLoopBackend(BackendConfig())
+    before = run(backend, odometry, [(1, 20, np.linalg.inv(truth[1]) @ truth[20])])
+    guesses = chain(odometry)
+    assert max(np.abs(before[k] - guesses[k]).max() for k in before) > 0.05  # the loop moved the map
+    optimum = backend.final_estimates()  # (iSAM2 itself stops iterating within loop_step_threshold of it)
+    backend.fail_next_loop = True
+    backend.add_loop(3, 17, np.linalg.inv(truth[3]) @ truth[17])
+    with pytest.raises(BackendUpdateError, match="Indeterminate"):
+        backend.update()
+    after = backend.estimates()
+    assert backend.num_loops == 1 and sorted(after) == sorted(before)
+    # rebuilt from the first guesses, one step left it 0.02 away
+    assert max(np.abs(after[k] - optimum[k]).max() for k in before) < 1e-6
+    backend.add_submap(NUM_SUBMAPS, odometry[0])
+    backend.update()
+    np.testing.assert_allclose(backend.H_world_submap(NUM_SUBMAPS), after[NUM_SUBMAPS - 1] @ odometry[0], atol=1e-6)
+
+
 # ---------------------------------------------------------------------------- guards and bookkeeping
 @pytest.mark.parametrize("kind", ["sl4", "sim3"])
 def test_invalid_inputs_are_refused(kind):
-    backend = make_backend(BackendConfig(kind=kind))
+    backend = make_backend(BackendConfig(kind=kind, graph="submap"))
     backend.add_submap(0, None)
     reflection = np.diag([-1.0, 1.0, 1.0, 1.0])  # det = -1: no SL(4) or Sim(3) representative
     not_finite = np.eye(4)

@@ -12,7 +12,7 @@ from sl4slam.alignment import camera_constrained_sl4, estimate_sl4, make_aligner
 from sl4slam.backend import SL4Backend
 from sl4slam.backend.evidence import edge_information, transfer_jacobians
 from sl4slam.config import AlignmentConfig, BackendConfig, SLAMConfig
-from sl4slam.edges import camera_problem, edge_problem
+from sl4slam.edges import camera_problem, edge_problem, is_camera_link
 from sl4slam.geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse
 from sl4slam.pipeline import keyframe_cameras
 from sl4slam.submap import StoredKeyframe
@@ -20,6 +20,13 @@ from sl4slam.synthetic.correspondences import near_identity_sl4, random_rotation
 from sl4slam.types import Alignment, FrameView, SubmapPrediction
 
 GENERATORS = SL4Backend(BackendConfig()).generators()
+
+
+def submap_graph_config() -> SLAMConfig:
+    """The submap graph's settings: its aligner fits 15 DOF and measures degenerate frames otherwise."""
+    config = SLAMConfig()
+    config.backend.graph = "submap"
+    return config
 
 
 def alignment_from(H: np.ndarray, X_b: np.ndarray, rms: float, count: int | None = None, fallback: str | None = None) -> Alignment:
@@ -149,11 +156,17 @@ def test_camera_constrained_fit_recovers_a_planar_frame() -> None:
     # and the aligner uses it for such a frame when asked to
     view_a = FrameView(X_a.reshape(60, 50, 3).astype(np.float32), np.ones((60, 50), bool), *decompose_pose(P_a))
     view_b = FrameView(X_b.reshape(60, 50, 3).astype(np.float32), np.ones((60, 50), bool), K, T_cam_b)
-    config = SLAMConfig()
+    config = submap_graph_config()
     config.alignment.planar_model = "camera-constrained"
     aligned = make_aligner(config).align(view_a, view_b, seed=0)
     assert aligned.model == "sl4" and "camera-constrained" in aligned.fallback
     np.testing.assert_allclose(apply_transform(aligned.H, X_b), X_a, atol=1e-4)
+    # the hybrid link never takes that fit: a degenerate frame gets the frame's camera link, as its own choice
+    config.alignment.model = "hybrid"
+    linked = make_aligner(config).align(view_a, view_b, seed=0)
+    assert is_camera_link(linked) and linked.fallback is None and "flat" in linked.extras["degenerate"]
+    camera_link = make_aligner(config).camera_edge(view_a, view_b)
+    np.testing.assert_allclose(linked.H, camera_link.H, atol=1e-12)
 
 
 def test_calibration_scale_link_measures_a_flat_frame_without_its_points() -> None:
@@ -175,10 +188,10 @@ def test_calibration_scale_link_measures_a_flat_frame_without_its_points() -> No
     view_a = FrameView(apply_transform(se3_inverse(T_cam_a), warped).reshape(60, 80, 3).astype(np.float32),
                        np.ones((60, 80), bool), K_a, T_cam_a)
     view_b = FrameView(X_b.reshape(60, 80, 3).astype(np.float32), np.ones((60, 80), bool), K_b, T_cam_b)
-    aligned = make_aligner(SLAMConfig()).align(view_a, view_b, seed=0)
+    aligned = make_aligner(submap_graph_config()).align(view_a, view_b, seed=0)
     assert "calibration-and-scale" in aligned.fallback and aligned.extras["scale"] == pytest.approx(scale, rel=0.02)
     np.testing.assert_allclose(apply_transform(aligned.H, X_b), X_a, atol=0.02 * 2.5 * scale)
-    exact = make_aligner(SLAMConfig()).camera_edge(
+    exact = make_aligner(submap_graph_config()).camera_edge(
         dataclasses.replace(view_a, points=X_a.reshape(60, 80, 3).astype(np.float32)), view_b)
     np.testing.assert_allclose(apply_transform(exact.H, X_b), X_a, atol=1e-5)
 

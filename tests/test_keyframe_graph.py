@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from sl4slam.alignment import HybridAligner
 from sl4slam.alignment.sim3 import calibration_scale_link
-from sl4slam.backend import BackendUpdateError, KeyframeBackend, SubmapFrames, make_backend
+from sl4slam.backend import BackendUpdateError, KeyframeBackend, Sim3Backend, SL4Backend, SubmapFrames, make_backend
 from sl4slam.backend.keyframe import sl4_adjoint, transport_information
 from sl4slam.config import AlignmentConfig, BackendConfig, SLAMConfig, alignment_model, attention_check
 from sl4slam.edges import is_camera_link
@@ -220,12 +220,20 @@ def test_loop_check_and_rollback_work_on_keyframe_nodes(monkeypatch) -> None:
 
 
 def test_graph_setting() -> None:
+    """"auto" is the keyframe graph for SL(4) and the submap graph for Sim(3); an explicit keyframe
+    graph with Sim(3) is refused."""
     config = SLAMConfig()
-    assert config.backend.graph == "submap" and alignment_model(config) == "sl4" and not attention_check(config)
-    config.backend.graph = "keyframe"
+    assert config.backend.graph == "auto" and config.backend.design == "keyframe"
     assert alignment_model(config) == "calibration" and attention_check(config)
     assert isinstance(make_backend(config.backend), KeyframeBackend)
-    config.backend.kind = "sim3"
+    config.backend.graph = "submap"
+    assert alignment_model(config) == "sl4" and not attention_check(config)
+    assert isinstance(make_backend(config.backend), SL4Backend)
+    config.backend.kind, config.backend.graph = "sim3", "auto"
+    config.validate()
+    assert config.backend.design == "submap" and alignment_model(config) == "sim3-cameras"
+    assert isinstance(make_backend(config.backend), Sim3Backend)
+    config.backend.graph = "keyframe"
     with pytest.raises(UserError, match="--graph"):
         config.validate()
 
@@ -299,6 +307,8 @@ def test_a_cache_recorded_with_one_graph_replays_with_the_other(world: Path, tmp
     direct = compute_ate(run(world, replay)[1]).rmse
     assert second["counts"]["keyframes"] == first["counts"]["keyframes"] > 10
     assert second["config"]["backend"]["graph"] == "keyframe"
+    assert first["graph"] == {"group": "sl4", "design": "submap", "alignment": "sl4"}
+    assert second["graph"] == {"group": "sl4", "design": "keyframe", "alignment": "calibration"}
     assert second["ate"]["rmse"] == pytest.approx(direct, rel=1e-6)
 
 

@@ -35,6 +35,7 @@ def make_config(backend: str = "sl4", retrieval: str = "orb", perspective: float
     config = SLAMConfig(frontend="simulated")
     config.keyframes.tau_disparity = 12.0
     config.backend.kind = backend
+    config.backend.graph = "submap"  # VGGT-SLAM's graph, whose 15-DOF links model this distortion
     config.retrieval.kind = retrieval
     config.sim.perspective = perspective
     config.sim.distort_first_submap = False  # isolate the error alignment adds (see SimulatorConfig)

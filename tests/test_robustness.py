@@ -11,6 +11,7 @@ import pytest
 
 from sl4slam.backend import BackendUpdateError, SL4Backend
 from sl4slam.config import SLAMConfig
+from sl4slam.errors import UserError
 from sl4slam.frontend import make_frontend
 from sl4slam.frontend.simulated import SimulatedFrontend
 from sl4slam.io import ListSource, open_source
@@ -54,6 +55,19 @@ class FailingFrontend(SimulatedFrontend):
         if submap_id in self.failing:
             raise RuntimeError("CUDA out of memory (simulated)")
         return super().reconstruct(frames, submap_id)
+
+
+def test_a_frontend_without_match_scores_runs_without_the_attention_check(small_world: Path) -> None:
+    """A frontend whose reconstruct() takes no ``match_pairs`` cannot feed the attention loop check:
+    "auto" runs without it (other checks still guard the loops), an explicit "on" is refused up front."""
+    config = small_config()
+    config.backend.graph = "keyframe"  # whose "auto" attention check is on
+    plain = SLAMPipeline(config, FailingFrontend(config.sim, set()), make_retrieval(config.retrieval))
+    scoring = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+    assert scoring.loop_verifier.attention and not plain.loop_verifier.attention
+    config.loops.verify_attention = "on"
+    with pytest.raises(UserError, match="--loop-verify-attention on needs image-match ratios"):
+        SLAMPipeline(config, FailingFrontend(config.sim, set()), make_retrieval(config.retrieval))
 
 
 def test_a_failing_submap_is_skipped_and_the_run_goes_on(small_world: Path) -> None:

@@ -123,6 +123,15 @@ def test_device_and_dtype_resolution():
         resolve_compute_dtype("int4", cpu)
     with pytest.raises(UserError):
         VGGTFrontend(VGGTConfig(device="cpu", preprocess_mode="stretch"))
+
+
+def test_a_match_layer_the_model_lacks_is_refused_when_the_loop_check_needs_it(tiny_model):
+    """The attention loop check reads global layer ``match_layer`` (21 of VGGT-1B's 24); a smaller
+    model without it is refused when the weights load, before any frame, naming the fix."""
+    with pytest.raises(UserError, match="--match-layer 21 does not exist: the model has 4 global attention layers"):
+        VGGTFrontend(VGGTConfig(device="cpu"), model=tiny_model, match_scores=True)
+    VGGTFrontend(VGGTConfig(device="cpu"), model=tiny_model)  # no loop check: the layer is never read
+    VGGTFrontend(VGGTConfig(device="cpu", match_layer=3), model=tiny_model, match_scores=True)
     if not torch.cuda.is_available():
         with pytest.raises(UserError, match="no CUDA"):
             resolve_device("cuda")
@@ -162,6 +171,7 @@ def test_a_run_with_garbage_model_output_completes(tmp_path, shared_dir):
     config.vggt.weights, config.vggt.device = str(weights), "cpu"
     config.submap.size = 2
     config.retrieval.kind, config.retrieval.tau_interval = "orb", 0
+    config.vggt.match_layer = SMALL_CONFIG.depth - 1  # the attention loop check reads the small model's last layer
     summary = run_slam(shared_dir / "data" / "tum_rgbd_fr1_xyz_first37", tmp_path / "out", config, progress=False)
     assert summary["status"] == "complete" and summary["counts"]["keyframes"] >= 4
     edges = summary["edges"]

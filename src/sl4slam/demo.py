@@ -31,6 +31,9 @@ def synthetic_world(frames: int = 600, seed: int = 0, width: int = 320, height: 
 def demo_config(backend: str, perspective: float, retrieval: str = "orb") -> SLAMConfig:
     config = SLAMConfig(frontend="simulated")
     config.backend.kind = backend
+    # The demo shows VGGT-SLAM's point: one projective distortion per submap, which the submap
+    # graph's 15-DOF links model and Sim(3) links cannot.
+    config.backend.graph = "submap"
     config.retrieval.kind = retrieval
     config.sim.perspective = perspective
     # Submap 0 defines the world frame; leaving it undistorted shows the error each backend adds.

@@ -260,7 +260,7 @@ def write_outputs(result: SLAMResult, out_dir: Path, config, source_name: str = 
 
     Raises ``UserError`` when a file cannot be written (the message names it).
     """
-    from .config import config_to_dict
+    from .config import alignment_model, config_to_dict
     from .io import write_tum_trajectory
 
     out_dir = Path(out_dir)
@@ -279,13 +279,15 @@ def write_outputs(result: SLAMResult, out_dir: Path, config, source_name: str = 
         if len(result.keyframes):
             curves = {"estimate": ate_result.positions_aligned if ate_result else result.T_world_cam[:, :3, 3]}
             name = f"{source_name}, " if source_name else ""
-            title = f"{name}{config.backend.kind} graph, top view"
+            title = f"{name}{config.backend.kind} {config.backend.design} graph, top view"
             if ate_result is not None:
                 title += f"\nATE RMSE {ate_result.rmse:.4f} m over {ate_result.num_poses} keyframes (Sim(3)-aligned)"
             plot_trajectories(out_dir / "trajectory.png", curves, ate_result.positions_gt if ate_result else None, title)
         summary = summarize(result, config_to_dict(config), ate_result,
                             {"status": status, "source": source_name, "skipped_inputs": list(skipped),
-                             "map_points": int(map_points), **(extra or {})})
+                             "map_points": int(map_points),
+                             "graph": {"group": config.backend.kind, "design": config.backend.design,
+                                       "alignment": alignment_model(config)}, **(extra or {})})
         atomic_write_bytes(out_dir / "summary.json", json.dumps(summary, indent=2).encode())
     except OSError as exc:
         raise UserError(f"cannot write the results into {out_dir}: {exc.strerror or exc} ({exc.filename or out_dir})") from None

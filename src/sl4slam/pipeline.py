@@ -28,6 +28,7 @@ Nothing that goes wrong inside a submap ends a run:
 
 from __future__ import annotations
 
+import inspect
 import logging
 import time
 from dataclasses import dataclass, field
@@ -191,7 +192,7 @@ class SLAMPipeline:
             raise UserError(f"the {self.aligner.model} aligner measures projective transforms, which a "
                             f"{self.backend.kind} graph cannot hold; use a Sim(3) alignment model")
         self.loop_verifier = LoopVerifier(config.loops, config.alignment, self.aligner, self.backend, self.edge_information,
-                                          attention=attention_check(config))
+                                          attention=attention_check(config) and scores_matches(frontend, config))
         self.selector = KeyframeSelector(config.keyframes)
         self.on_submap = on_submap
         self.keyframes: list[StoredKeyframe] = []
@@ -630,6 +631,21 @@ def world_cameras(keyframes: Sequence[StoredKeyframe], H_world_submap: dict[int,
     H_inv = {i: np.linalg.inv(H) for i, H in H_world_submap.items()}
     return np.stack([k.K @ k.T_cam_submap[:3] @ (np.linalg.inv(own[k.frame_index]) if k.frame_index in own
                                                   else H_inv[k.submap_id]) for k in keyframes])
+
+
+def scores_matches(frontend: Frontend, config: SLAMConfig) -> bool:
+    """Whether ``frontend`` can give the attention loop check its image-match ratios (it takes the
+    ``match_pairs`` keyword). A frontend that cannot is run without the check where the setting is
+    "auto"; an explicit "on" is refused before any work."""
+    try:
+        parameters = inspect.signature(frontend.reconstruct).parameters
+    except (TypeError, ValueError):
+        parameters = {}
+    able = "match_pairs" in parameters or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
+    if not able and config.loops.verify_attention == "on":
+        raise UserError(f"--loop-verify-attention on needs image-match ratios, which the {type(frontend).__name__} "
+                        "frontend does not give; use --loop-verify-attention off or auto")
+    return able
 
 
 def recorded_match_ratio(prediction: SubmapPrediction, first: int, second: int) -> float | None:

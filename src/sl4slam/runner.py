@@ -261,6 +261,9 @@ def print_summary(summary: dict, out_dir: Path, stream=sys.stdout) -> None:
             f"{counts.get('loops', 0)} loops ({counts.get('loops_rejected', 0)} rejected), "
             f"{counts.get('fallbacks', 0)} fallbacks, {counts.get('segments', 1)} segment(s); "
             f"{summary['seconds']['total']:.1f} s, peak {summary['memory']['peak_rss_mib']:.0f} MiB")
+    if "graph" in summary:
+        graph = summary["graph"]
+        line += f"; {graph['group']} {graph['design']} graph, {graph['alignment']} links"
     print(line, file=stream)
     dropped = {k: v for k, v in summary.get("dropped_frames", {}).items() if v}
     skipped = len(summary.get("skipped_inputs", []))

@@ -203,20 +203,27 @@ class HybridAligner(SL4Aligner):
     projective distortion; the 15-DOF fit also absorbs smooth depth warps as a projective error,
     which then drifts from link to link. The fit replaces the link only where the points show a
     distortion well beyond that: its median transfer error must be ``hybrid_margin`` times smaller
-    than the link's (benchmarks/bench_keyframe_graph.py). A degenerate frame (planar or flat against
-    its depth errors) gets the link (or the ``planar_model``) as in :class:`SL4Aligner`; the link is
-    then this model's own choice, not a fallback (``extras["degenerate"]`` says why).
+    than the link's (benchmarks/bench_keyframe_graph.py). A degenerate or nearly planar frame always
+    gets the link, never the camera-constrained fit (``planar_model`` is not consulted: under smooth
+    depth warps that fit bent the map, benchmarks/results/keyframe_graph.md); the link is then this
+    model's own choice, not a fallback (``extras["degenerate"]`` says why).
     ``Alignment.extras["hybrid_ratio"]`` records the ratio.
     """
 
     model = "hybrid"
 
+    def _degenerate(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int, why: str,
+                    stand_in: Alignment | None = None) -> Alignment:
+        link = self.camera_edge(view_a, view_b)
+        link.fallback = why
+        return link
+
     def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
         fitted = super().fit(X_a, X_b, view_a, view_b, seed)
-        if fitted.fallback is not None:  # degenerate: already the constrained model
-            if is_camera_link(fitted):  # the link is this model's own choice here, not a fallback
-                fitted.extras["degenerate"], fitted.fallback = fitted.fallback, None
-            return fitted
+        if fitted.fallback is not None:  # degenerate or nearly planar: the link
+            link = fitted if is_camera_link(fitted) else self.camera_edge(view_a, view_b)
+            link.extras["degenerate"], link.fallback = fitted.fallback, None
+            return link
         link = calibration_scale_link(view_a.K, view_a.T_cam_submap, view_b.K, view_b.T_cam_submap, X_a, X_b,
                                       self.config.inlier_threshold)
         sample = slice(None, None, max(1, len(X_b) // self.config.max_points))

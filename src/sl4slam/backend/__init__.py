@@ -18,10 +18,10 @@ __all__ = ["Backend", "BackendUpdateError", "FactorGraphBackend", "KeyframeBacke
 
 
 def make_backend(config: BackendConfig) -> Backend:
-    """The graph named by ``config.graph`` ("submap" or "keyframe") in the group ``config.kind``
+    """The graph design ``config.design`` ("submap" or "keyframe") in the group ``config.kind``
     ("sl4" or "sim3"); ``UserError`` for bad settings."""
     config.validate()
-    if config.graph == "keyframe":
+    if config.design == "keyframe":
         return KeyframeBackend(config)
     if config.kind == "sim3":
         return Sim3Backend(config)

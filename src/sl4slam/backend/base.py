@@ -384,10 +384,14 @@ class FactorGraphBackend(Backend):
         iterations = 0
         if self._pending_factors.size() or self._pending_values.size():
             factors, values, had_loops = self._pending_factors, self._pending_values, self._pending_loops > 0
+            # Loops move the whole map: keep the estimate they start from, so that a failure rebuilds
+            # the graph there and not from the nodes' first guesses, which a long run has left far
+            # behind (rebuilt from those, every later update of a 300-submap lap replay failed).
+            before = self._isam.calculateEstimate() if had_loops and self._committed_values.size() else None
             try:
                 iterations = self._solve(factors, values, had_loops)
             except RuntimeError as exc:  # GTSAM's IndeterminateSystemException and relatives
-                self._roll_back()
+                self._roll_back(before)
                 raise BackendUpdateError(f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}") from None
             finally:
                 self._pending_factors = gtsam.NonlinearFactorGraph()
@@ -418,8 +422,9 @@ class FactorGraphBackend(Backend):
                 iterations += 1
         return iterations
 
-    def _roll_back(self) -> None:
-        """Forget the pending nodes and rebuild iSAM2 from the committed factors."""
+    def _roll_back(self, estimate: gtsam.Values | None = None) -> None:
+        """Forget the pending nodes and rebuild iSAM2 from the committed factors, linearized at
+        ``estimate`` (the committed nodes' values before the failed update) or at their first guesses."""
         for submap_id in self._pending_ids:
             self._order.remove(submap_id)
             self._known.discard(submap_id)
@@ -429,7 +434,7 @@ class FactorGraphBackend(Backend):
         self.num_loops -= self._pending_loops
         self._isam = self._new_isam()
         if self._committed_factors.size():
-            self._isam.update(self._committed_factors, self._committed_values)
+            self._isam.update(self._committed_factors, estimate if estimate is not None else self._committed_values)
         self._last_estimate = (self._from_gtsam(self._estimate_one(self.key(self._order[-1])))
                                if self._order else None)
 
@@ -497,8 +502,9 @@ class FactorGraphBackend(Backend):
 
     def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray,
                   frames: tuple[int, int] | None = None) -> float:
-        """See :meth:`Backend.loop_chi2`. Costs one batch marginalization of the graph (about 10 ms
-        for 300 SL(4) nodes), so call it for loop candidates only."""
+        """See :meth:`Backend.loop_chi2`. The two nodes' joint covariance comes from iSAM2's Bayes
+        tree (equal to a batch marginalization of the whole graph to 1e-11, which cost 0.3 s at 4000
+        nodes against 9-30 ms: benchmarks/results/keyframe_graph.md), so call it for loop candidates only."""
         H_i_j = self._check("H_i_j", H_i_j)
         keys = [self.key(j), self.key(i)]
         values = self._isam.calculateBestEstimate()
@@ -507,7 +513,7 @@ class FactorGraphBackend(Backend):
         order = list(factor.keys())
         if order != keys:  # jacobian blocks follow the factor's key order
             A = np.concatenate([A[:, order.index(k) * self.dim:(order.index(k) + 1) * self.dim] for k in keys], axis=1)
-        joint = gtsam.Marginals(self.factor_graph(), values).jointMarginalCovariance(keys).fullMatrix()
+        joint = self._isam.jointMarginalCovariance(keys).fullMatrix()
         covariance = A @ joint @ A.T + np.linalg.inv(information)
         error = np.asarray(factor.unwhitenedError(values), dtype=np.float64)
         return float(error @ np.linalg.solve(covariance, error))

@@ -9,7 +9,7 @@
 
 from __future__ import annotations
 
-from ..config import SLAMConfig
+from ..config import SLAMConfig, attention_check
 from ..errors import UserError
 from ..types import Frontend
 from .cache import CachingFrontend, ReplayFrontend
@@ -27,7 +27,8 @@ def make_frontend(config: SLAMConfig, replay_dir: str | None = None, cache_dir: 
     elif config.frontend == "vggt":
         from .vggt import VGGTFrontend
 
-        frontend = VGGTFrontend(config.vggt, with_points=config.submap.use_point_head)
+        frontend = VGGTFrontend(config.vggt, with_points=config.submap.use_point_head,
+                                match_scores=attention_check(config))
     else:
         raise UserError(f"unknown frontend '{config.frontend}': use --frontend vggt or --frontend simulated")
     if cache_dir is not None:

@@ -85,7 +85,10 @@ class VGGTFrontend:
     name = "vggt"
     requires_ground_truth = False
 
-    def __init__(self, config: VGGTConfig, model: VGGT | None = None, with_points: bool = False) -> None:
+    def __init__(self, config: VGGTConfig, model: VGGT | None = None, with_points: bool = False,
+                 match_scores: bool = False) -> None:
+        """``match_scores``: the loop check will ask for image-match ratios (``config.match_layer``
+        must then exist in the model, checked when the weights load)."""
         if config.preprocess_mode not in ("crop", "pad"):
             raise UserError(f"unknown VGGT preprocessing mode '{config.preprocess_mode}': use crop or pad")
         self.config = config
@@ -95,9 +98,15 @@ class VGGTFrontend:
         self.with_points = with_points
         self.heads = ("camera", "depth", "point") if with_points else ("camera", "depth")
         self.last_transforms: list[GridTransform] = []
+        self.match_scores = match_scores
         self._model = self._prepare(model) if model is not None else None
 
     def _prepare(self, model: VGGT) -> VGGT:
+        layers = len(model.aggregator.global_blocks)
+        if self.match_scores and not 0 <= self.config.match_layer < layers:
+            raise UserError(f"--match-layer {self.config.match_layer} does not exist: the model has {layers} "
+                            f"global attention layers (0-{layers - 1}); pick one of them, or switch the attention "
+                            "loop check off with --loop-verify-attention off")
         # Weights are converted on the CPU, one copy each, before they move to the device.
         model = apply_precision(model.eval(), self.precision).to(self.device)
         if self.config.max_memory_gb > 0:
