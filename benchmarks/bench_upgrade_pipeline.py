@@ -57,6 +57,7 @@ def run(world: Path, setting: str, graph: str, seed: int) -> dict:
         config.sim.perspective = float(setting.split()[1])
     config.sim.seed = config.alignment.seed = seed
     config.backend.kind, config.backend.graph, _ = GRAPHS[graph]
+    config.upgrade.mode = "on"  # measured on every graph ("auto" leaves it to the submap graph)
     config.retrieval.kind = "orb"
     if world.name.startswith("synthetic_"):
         config.keyframes.tau_disparity = WORLD_SIZES[world.name.removeprefix("synthetic_")]

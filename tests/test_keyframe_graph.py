@@ -18,7 +18,8 @@ from sl4slam.alignment import HybridAligner
 from sl4slam.alignment.sim3 import calibration_scale_link
 from sl4slam.backend import BackendUpdateError, KeyframeBackend, Sim3Backend, SL4Backend, SubmapFrames, make_backend
 from sl4slam.backend.keyframe import sl4_adjoint, transport_information
-from sl4slam.config import AlignmentConfig, BackendConfig, SLAMConfig, alignment_model, attention_check
+from sl4slam.config import (AlignmentConfig, BackendConfig, SLAMConfig, alignment_model, attention_check,
+                            metric_upgrade_on)
 from sl4slam.edges import is_camera_link
 from sl4slam.errors import UserError
 from sl4slam.frontend import make_frontend
@@ -224,14 +225,17 @@ def test_graph_setting() -> None:
     graph with Sim(3) is refused."""
     config = SLAMConfig()
     assert config.backend.graph == "auto" and config.backend.design == "keyframe"
-    assert alignment_model(config) == "calibration" and attention_check(config)
+    assert alignment_model(config) == "calibration" and attention_check(config) and not metric_upgrade_on(config)
     assert isinstance(make_backend(config.backend), KeyframeBackend)
+    config.upgrade.mode = "on"
+    assert metric_upgrade_on(config)
+    config.upgrade.mode = "auto"
     config.backend.graph = "submap"
-    assert alignment_model(config) == "sl4" and not attention_check(config)
+    assert alignment_model(config) == "sl4" and not attention_check(config) and metric_upgrade_on(config)
     assert isinstance(make_backend(config.backend), SL4Backend)
     config.backend.kind, config.backend.graph = "sim3", "auto"
     config.validate()
-    assert config.backend.design == "submap" and alignment_model(config) == "sim3-cameras"
+    assert config.backend.design == "submap" and alignment_model(config) == "sim3-cameras" and not metric_upgrade_on(config)
     assert isinstance(make_backend(config.backend), Sim3Backend)
     config.backend.graph = "keyframe"
     with pytest.raises(UserError, match="--graph"):
@@ -280,6 +284,7 @@ def test_without_loops_the_keyframe_graph_equals_the_submap_graph(world: Path) -
         config = world_config(graph, perspective=0.1)
         config.retrieval.kind = "none"
         config.alignment.model = "calibration"
+        config.upgrade.mode = "off"  # "auto" upgrades the submap graph's map only
         config.max_frames = 200
         results.append(run(world, config)[1])
     submap, keyframe = results

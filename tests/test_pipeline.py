@@ -112,7 +112,7 @@ def test_metric_upgrade_that_cannot_be_estimated_keeps_the_map(world: Path, monk
     try:
         assert pipeline.result().stats["metric_upgrade"] == []
     finally:
-        pipeline.config.upgrade.mode = "on"
+        pipeline.config.upgrade.mode = "auto"
 
 
 def test_run_is_deterministic(world: Path) -> None:

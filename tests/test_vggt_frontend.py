@@ -148,7 +148,7 @@ def test_cli_runs_end_to_end_with_a_random_checkpoint(tmp_path):
     assert main(["synth", "--out", str(source), "--frames", "30", "--width", "128", "--height", "96"]) == 0
     out = tmp_path / "run"
     code = main(["run", str(source), "--out", str(out), "--frontend", "vggt", "--weights", str(weights),
-                 "--device", "cpu", "--submap-size", "4", "--quiet"])
+                 "--device", "cpu", "--submap-size", "4", "--match-layer", "3", "--quiet"])
     assert code == 0
     assert (out / "summary.json").is_file()
     summary = json.loads((out / "summary.json").read_text())

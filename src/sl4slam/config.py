@@ -311,12 +311,13 @@ class BackendConfig(Section):
     """Graph design: "keyframe" (one SL(4) node per keyframe with rigid links inside a submap and
     calibration-and-scale links between submaps, VGGT-SLAM 2.0; ``sl4slam.backend.keyframe``),
     "submap" (one node per submap joined by 15-DOF links, VGGT-SLAM), or "auto": the keyframe graph
-    for the SL(4) group, the submap graph for Sim(3). Under VGGT-like errors (the vggt simulator
-    profile) the keyframe graph's ATE is 0.13x the submap graph's on the synthetic world and 0.30x on
-    TUM fr1/desk (benchmarks/results/keyframe_graph.md; VGGT-SLAM 2.0 reports 0.041 against 0.053 m
-    on TUM); the submap graph is the one whose links can model a large per-submap projective
-    distortion (the exact profile with ``--sim-perspective``; the demo). The keyframe graph needs
-    ``kind`` "sl4"."""
+    for the SL(4) group, the submap graph for Sim(3). The keyframe graph's ATE is 0.49x the submap
+    graph's on the synthetic world under the vggt simulator profile, 0.30x on TUM fr1/desk, 0.30x
+    even under a pure per-submap projective distortion of 0.1 (the submap graph's fallbacks on flat
+    shared frames cannot express it), and 0.70x the Sim(3) graph's under the vggt profile
+    (benchmarks/results/keyframe_graph.md, robustness.md; VGGT-SLAM 2.0 reports 0.041 against
+    0.053 m on TUM). The demo keeps the submap graph: it shows what 15-DOF links model. The
+    keyframe graph needs ``kind`` "sl4"."""
     frame_sigma: float = 0.05
     """Keyframe graph: isotropic sigma (SL(4) tangent units) of the link between consecutive
     keyframes of a submap, their relative pose from the frontend (reference code: 0.05; the
@@ -804,7 +805,7 @@ class UpgradeConfig(Section):
     flag_prefix: ClassVar[str] = "upgrade-"
     flag_names: ClassVar[dict[str, str]] = {"mode": "--metric-upgrade"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
-        "mode": ("on", "off"),
+        "mode": ("auto", "on", "off"),
         "focal_model": ("shared", "varying"),
         "loss": ("cauchy", "soft_l1", "huber", "arctan", "linear"),
     }
@@ -812,10 +813,15 @@ class UpgradeConfig(Section):
         "focal_weight", "loss", "loss_scale", "outlier_factor", "min_inlier_fraction", "min_keyframes",
         "min_condition", "max_uncertainty", "max_iterations", "max_residual_ratio", "metric_residual"})
 
-    mode: str = "on"
+    mode: str = "auto"
     """"on": estimate the upgrade at the end of a run and apply it to every node, pose and map point
-    when it is well conditioned and clearly better (benchmarks/results/upgrade.md: it never made a
-    run worse); "off": leave the map in the first submap's projective frame."""
+    when it is well conditioned and clearly better; "off": leave the map in the first submap's
+    projective frame; "auto": on for the SL(4) submap graph, whose 15-DOF links make the whole map
+    inherit the first submap's projective distortion (median ATE with / without 0.16 on TUM
+    fr1/desk and 0.64 on the synthetic world at perspective 0.1; worst single run 1.20x), off for
+    the keyframe graph, whose links carry no such common distortion (median 0.84-1.10, single
+    runs up to 1.24x worse on the synthetic world), and for the Sim(3) graph, where it is almost
+    always skipped anyway (benchmarks/results/upgrade_pipeline.md)."""
     focal_model: str = "shared"
     """"shared": one focal length for every keyframe (one physical camera films the video; the
     strongest constraint, with the fewest critical motions: Sturm, CVPR 1997, vs. varying focal,
@@ -935,6 +941,13 @@ def alignment_model(config: SLAMConfig) -> str:
     if config.backend.kind == "sim3":
         return "sim3-cameras"
     return "calibration" if config.backend.design == "keyframe" else "sl4"
+
+
+def metric_upgrade_on(config: SLAMConfig) -> bool:
+    """Whether a run ends with the metric upgrade ("auto" resolved from the graph design)."""
+    if config.upgrade.mode != "auto":
+        return config.upgrade.mode == "on"
+    return config.backend.kind == "sl4" and config.backend.design == "submap"
 
 
 def attention_check(config: SLAMConfig) -> bool:

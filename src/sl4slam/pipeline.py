@@ -39,7 +39,7 @@ import numpy as np
 from .alignment import make_aligner
 from .backend import Backend, BackendUpdateError, SubmapFrames, WorldEstimate, make_backend
 from .backend.evidence import edge_information
-from .config import SLAMConfig, attention_check
+from .config import SLAMConfig, attention_check, metric_upgrade_on
 from .edges import EdgeReport, camera_problem, edge_problem
 from .errors import UserError
 from .geometry import decompose_projection, normalize_sl4, to_4x4
@@ -546,7 +546,7 @@ class SLAMPipeline:
 
         H_world_submap, H_world_keyframe = world.H_world_submap, world.H_world_keyframe
         keyframes = [k for k in self.keyframes if k.submap_id in H_world_submap]
-        if not keyframes or self.config.upgrade.mode == "off":
+        if not keyframes or not metric_upgrade_on(self.config):
             return world, []
         starts = self.backend.segments
         segment_of = np.searchsorted(starts, [k.submap_id for k in keyframes], side="right") - 1

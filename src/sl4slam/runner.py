@@ -271,6 +271,10 @@ def print_summary(summary: dict, out_dir: Path, stream=sys.stdout) -> None:
         dropped["unreadable"] = skipped
     if dropped:
         print("dropped frames: " + ", ".join(f"{v} {k}" for k, v in dropped.items()) + " (see summary.json)", file=stream)
+    mode = summary.get("config", {}).get("upgrade", {}).get("mode")
+    if not summary.get("metric_upgrade") and (mode == "off" or (mode == "auto" and summary.get("graph", {}).get("design") != "submap")):
+        print("metric upgrade: off" + (" (auto: it is for the submap graph, whose map inherits one projective distortion; "
+                                       "--metric-upgrade on applies it here too)" if mode == "auto" else ""), file=stream)
     for upgrade in summary.get("metric_upgrade", []):
         state = (f"applied, focal {upgrade['focal_px']:.1f} px, constraint residual {upgrade['residual_before']:.3g} -> "
                  f"{upgrade['residual_after']:.3g}") if upgrade["applied"] else f"skipped: {upgrade['reason']}"

@@ -123,7 +123,9 @@ class Frontend(Protocol):
         ``submap_id`` lets stochastic frontends (the simulator) draw reproducible,
         submap-specific noise; deterministic models ignore it. The pipeline passes a keyword
         ``match_pairs`` (a list of slot pairs) only when the loop check wants image-match ratios
-        (``SubmapPrediction.match_ratios``); frontends that can score pairs accept it.
+        (``SubmapPrediction.match_ratios``); frontends that can score pairs accept it, and a
+        frontend without the keyword runs without the attention check
+        (``sl4slam.pipeline.scores_matches``).
         """
         ...
 
