@@ -312,7 +312,7 @@ class BackendConfig(Section):
     calibration-and-scale links between submaps, VGGT-SLAM 2.0; ``sl4slam.backend.keyframe``),
     "submap" (one node per submap joined by 15-DOF links, VGGT-SLAM), or "auto": the keyframe graph
     for the SL(4) group, the submap graph for Sim(3). The keyframe graph's ATE is 0.49x the submap
-    graph's on the synthetic world under the vggt simulator profile, 0.30x on TUM fr1/desk, 0.30x
+    graph's on the synthetic world under the vggt simulator profile, 0.31x on TUM fr1/desk, 0.30x
     even under a pure per-submap projective distortion of 0.1 (the submap graph's fallbacks on flat
     shared frames cannot express it), and 0.70x the Sim(3) graph's under the vggt profile
     (benchmarks/results/keyframe_graph.md, robustness.md; VGGT-SLAM 2.0 reports 0.041 against

@@ -424,7 +424,11 @@ class FactorGraphBackend(Backend):
 
     def _roll_back(self, estimate: gtsam.Values | None = None) -> None:
         """Forget the pending nodes and rebuild iSAM2 from the committed factors, linearized at
-        ``estimate`` (the committed nodes' values before the failed update) or at their first guesses."""
+        ``estimate`` (the committed nodes' values before the failed update), else where the failed
+        iSAM2 had linearized them (an odometry step leaves those values as they were), else at
+        their first guesses."""
+        if estimate is None:
+            estimate = self._committed_linearization_point()
         for submap_id in self._pending_ids:
             self._order.remove(submap_id)
             self._known.discard(submap_id)
@@ -437,6 +441,20 @@ class FactorGraphBackend(Backend):
             self._isam.update(self._committed_factors, estimate if estimate is not None else self._committed_values)
         self._last_estimate = (self._from_gtsam(self._estimate_one(self.key(self._order[-1])))
                                if self._order else None)
+
+    def _committed_linearization_point(self) -> gtsam.Values | None:
+        """The committed nodes' values in the (failed) iSAM2, or ``None`` if any is missing or not finite."""
+        try:
+            point = self._isam.getLinearizationPoint()
+            values = gtsam.Values()
+            for key in self._committed_values.keys():
+                element = self._at(point, key)
+                if not np.all(np.isfinite(self._from_gtsam(element))):
+                    return None
+                values.insert(key, element)
+            return values
+        except RuntimeError:
+            return None
 
     # ------------------------------------------------------------------ results
     def H_world_submap(self, submap_id: int) -> np.ndarray:
