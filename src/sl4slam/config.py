@@ -951,7 +951,10 @@ def metric_upgrade_on(config: SLAMConfig) -> bool:
 
 
 def attention_check(config: SLAMConfig) -> bool:
-    """Whether loops pass the attention check ("auto" resolved from the graph design)."""
+    """Whether loops pass the attention check ("auto" resolved from the graph design; never without
+    retrieval, which is where loops come from)."""
+    if config.retrieval.kind == "none":
+        return False
     if config.loops.verify_attention != "auto":
         return config.loops.verify_attention == "on"
     return config.backend.design == "keyframe"

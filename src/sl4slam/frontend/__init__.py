@@ -28,7 +28,7 @@ def make_frontend(config: SLAMConfig, replay_dir: str | None = None, cache_dir: 
         from .vggt import VGGTFrontend
 
         frontend = VGGTFrontend(config.vggt, with_points=config.submap.use_point_head,
-                                match_scores=attention_check(config) and config.retrieval.kind != "none")
+                                match_scores=attention_check(config))
     else:
         raise UserError(f"unknown frontend '{config.frontend}': use --frontend vggt or --frontend simulated")
     if cache_dir is not None:
