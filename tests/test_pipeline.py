@@ -31,8 +31,10 @@ def world(tmp_path_factory) -> Path:
                                     height=120, seed=0)
 
 
-def make_config(backend: str = "sl4", retrieval: str = "orb", perspective: float = PERSPECTIVE) -> SLAMConfig:
+def make_config(backend: str = "sl4", retrieval: str = "orb", perspective: float = PERSPECTIVE,
+                complete_links: bool = True) -> SLAMConfig:
     config = SLAMConfig(frontend="simulated")
+    config.upgrade.complete_links = complete_links
     config.keyframes.tau_disparity = 12.0
     config.backend.kind = backend
     config.backend.graph = "submap"  # VGGT-SLAM's graph, whose 15-DOF links model this distortion
@@ -72,7 +74,10 @@ def test_sl4_beats_sim3_under_projective_distortion(world: Path) -> None:
 
 
 def test_loop_closure_reduces_drift(world: Path) -> None:
-    with_loops, without = run(world, backend="sl4"), run(world, backend="sl4", retrieval="none")
+    # the floor-only stretch's links, left as their fallbacks made them, are the drift a loop corrects
+    # (completed from the cameras they leave almost none: test_fallback_links_are_completed_from_the_cameras)
+    with_loops = run(world, backend="sl4", complete_links=False)
+    without = run(world, backend="sl4", retrieval="none", complete_links=False)
     assert with_loops.stats["loops"] >= 1 and without.stats["loops"] == 0
     loop = next(e for e in with_loops.edges if e.kind == "loop")
     assert loop.submap_from == 0  # the path returns to its start
@@ -197,3 +202,20 @@ def test_cli_runs_with_salad_retrieval_from_a_random_checkpoint(world: Path, tmp
     # retrieval does not change which frames are keyframes
     assert summary["counts"]["keyframes"] == len(run(world, backend="sl4", retrieval="none").keyframes)
     assert f"{summary['counts']['loops']} loops" in proc.stdout
+
+
+def test_fallback_links_are_completed_from_the_cameras(world: Path) -> None:
+    """The floor-only stretch's links fix only the shared camera; completed from the next submap's
+    cameras, the map stays one projective frame that the metric upgrade makes metric."""
+    ate, texts = {}, {}
+    for complete in (False, True):
+        config = make_config(perspective=0.1, complete_links=complete)
+        config.sim.distort_first_submap = True  # the realistic case: a distortion the upgrade must remove
+        pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+        result = pipeline.run(open_source(str(world)), progress=False)
+        assert result.stats["metric_upgrade"][0]["applied"]
+        ate[complete] = compute_ate(result).rmse
+        texts[complete] = [e.fallback for e in result.edges if e.accepted and e.fallback]
+    assert texts[False] and not any("completed" in text for text in texts[False])
+    assert any("completed from the new submap's cameras" in text for text in texts[True])
+    assert ate[True] < 0.05 * ate[False] and ate[True] < 0.01 * path_extent(result), ate

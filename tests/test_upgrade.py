@@ -172,6 +172,29 @@ def misaligned(P: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return P @ np.linalg.inv(near_identity_sl4(rng))
 
 
+@pytest.mark.parametrize("bend, applied", [(0.01, True), (0.03, False)])
+def test_a_map_of_two_projective_frames_is_not_upgraded(bend, applied):
+    """Never worse: when half the cameras sit in a frame bent against the other half's (a link that
+    fixed only its shared camera), no one transform makes them all metric; beyond the noise, and
+    with no much larger distortion removed, the upgrade is skipped instead of trading one
+    distortion for another (a large distortion under the same errors is still removed:
+    test_noise_degrades_gracefully)."""
+    n = 200
+    T_true = camera_path(n, 11)
+    P = cameras(T_true, intrinsics(np.full(n, FOCAL)))
+    B = np.eye(4)
+    B[3, :3] = np.array([1.0, -0.5, 0.8]) * bend / scene_scale(P)
+    P[n // 2:] = P[n // 2:] @ B
+    # a mild common distortion, no larger than the bend: what the vggt profile's maps carry
+    P = P @ np.linalg.inv(random_distortion(np.random.default_rng(12), T_true[:, :3, 3], strength=0.03))
+    upgrade = estimate_metric_upgrade(P, PP, UpgradeConfig(), scene_scale=scene_scale(P))
+    assert upgrade.applied == applied, upgrade.reason
+    if not applied:
+        assert upgrade.reason.startswith("the cameras are not one projective frame")
+        assert upgrade.residual_before > 0.02  # there was a distortion to remove
+        np.testing.assert_array_equal(upgrade.H_metric_world, np.eye(4))
+
+
 @pytest.mark.parametrize("fraction", [0.1, 0.2])
 def test_cameras_that_break_the_model_do_not_bend_the_result(fraction):
     rng = np.random.default_rng(8)

@@ -11,6 +11,11 @@ keyframes and extrinsics (``SubmapFrames``) and each loop's two frames, which th
 uses to place them between keyframe nodes; both return a ``WorldEstimate`` with, for the keyframe
 graph, a transform per keyframe.
 
+Where the run ends with the metric upgrade, a link that only the shared frame's camera fixes (a
+fallback on a planar frame) is completed from the new submap's cameras in the running upgrade of
+the map so far before it enters the graph (``complete_link``, ``sl4slam.completion``), so the map
+stays one projective frame for the final upgrade.
+
 Nothing that goes wrong inside a submap ends a run:
 
 - the frontend fails (an exception or non-finite output): the submap is skipped and its keyframes
@@ -28,6 +33,7 @@ Nothing that goes wrong inside a submap ends a run:
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import logging
 import time
@@ -39,7 +45,7 @@ import numpy as np
 from .alignment import make_aligner
 from .backend import Backend, BackendUpdateError, SubmapFrames, WorldEstimate, make_backend
 from .backend.evidence import edge_information
-from .config import SLAMConfig, attention_check, metric_upgrade_on
+from .config import SLAMConfig, attention_check, completes_links, metric_upgrade_on
 from .edges import EdgeReport, camera_problem, edge_problem
 from .errors import UserError
 from .geometry import decompose_projection, normalize_sl4, to_4x4
@@ -393,6 +399,7 @@ class SLAMPipeline:
         relative = np.eye(4)  # where a new segment starts relative to the last node, without a measurement
         if isinstance(odometry, Alignment):
             previous = self._by_frame[self._prior.index].submap_id
+            odometry = self.complete_link(odometry, previous, self._prior_view, dense, slot=0)
             self.edges.append(EdgeReport.measured("odometry", previous, submap_id, self._prior.index, odometry))
             if odometry.fallback:
                 log.info("submap %d->%d: %s", previous, submap_id, odometry.fallback)
@@ -426,11 +433,12 @@ class SLAMPipeline:
             if not decision.accepted:
                 self._reject_loop(candidate, work.submap_id, decision.reason, decision.alignment, decision.checks)
                 continue
-            report = EdgeReport.measured("loop", old.submap_id, work.submap_id, candidate.match_frame, decision.alignment,
+            alignment = self.complete_link(decision.alignment, old.submap_id, old.view(), dense, work.loop_slot(k))
+            report = EdgeReport.measured("loop", old.submap_id, work.submap_id, candidate.match_frame, alignment,
                                          query_frame=candidate.query_frame, checks=decision.checks)
             self.edges.append(report)
             added.append(report)
-            self.backend.add_loop(old.submap_id, work.submap_id, self._graph_measurement(decision.alignment.H),
+            self.backend.add_loop(old.submap_id, work.submap_id, self._graph_measurement(alignment.H),
                                   decision.information, frames=tie)
         if added:
             try:
@@ -471,6 +479,80 @@ class SLAMPipeline:
         if not self.loop_verifier.attention:
             return []
         return [(work.slot_of(c.query_frame), work.loop_slot(k)) for k, c in enumerate(work.loops)]
+
+    def complete_link(self, alignment: Alignment, old_submap: int, old_view: FrameView, dense: DenseSubmap,
+                      slot: int) -> Alignment:
+        """A fallback link that only the shared frame's cameras fix, completed from the new submap's
+        cameras in the running metric upgrade (``sl4slam.completion``), where the run ends with the
+        upgrade; any other measurement as it is. ``slot``: the shared frame in the new submap."""
+        from .completion import complete_camera_link, plane_normal, shared_camera_agreement
+
+        if not alignment.fallback or alignment.model != "sl4" or not completes_links(self.config):
+            return alignment
+        new_view = dense.views[slot]
+        if shared_camera_agreement(old_view.camera, new_view.camera, alignment.H) > 1e-6:
+            return alignment  # a stand-in that does not keep the shared camera: nothing to complete
+        running = self._running_upgrade(old_submap)
+        if isinstance(running, str):
+            alignment.extras["completion"] = {"applied": False, "reason": running}
+            return alignment
+        H_metric_world, focal = running
+        prediction = dense.prediction
+        others = [s for s in range(len(prediction.K)) if s != slot]
+        cameras = np.stack([prediction.K[s] @ to_4x4(prediction.T_cam_submap[s])[:3] for s in others])
+        height, width = prediction.depth.shape[1:3]
+        pp = (np.asarray(prediction.principal_point, dtype=np.float64)[others] if prediction.principal_point is not None
+              else np.tile([width / 2.0, height / 2.0], (len(others), 1)))
+        points = new_view.points[new_view.mask].astype(np.float64)
+        T = new_view.T_cam_submap
+        centre = -T[:3, :3].T @ T[:3, 3]
+        # a camera-constrained fit took the plane's tilt from its points: only the relief along the
+        # normal is left free; the calibration link took nothing from them
+        free = plane_normal(points) if alignment.extras.get("camera_constrained") and len(points) >= 3 else None
+        completion = complete_camera_link(alignment.H, centre, points, cameras, pp,
+                                          H_metric_world @ self.backend.H_world_submap(old_submap), focal,
+                                          self.config.upgrade, free)
+        alignment.extras["completion"] = completion.summary()
+        if not completion.applied:
+            return alignment
+        return dataclasses.replace(alignment, H=completion.H_a_b, extras=dict(alignment.extras), fallback=(
+            f"{alignment.fallback}; completed from the new submap's cameras (constraint residual "
+            f"{completion.residual_before:.2g} -> {completion.residual_after:.2g})"))
+
+    def _running_upgrade(self, submap_id: int) -> tuple[np.ndarray, float] | str:
+        """``(H_metric_world, focal px)`` of the map so far in ``submap_id``'s segment, or why there is none."""
+        world = self.backend.world_estimate()
+        members = self._segment_members(world).get(self.backend.segments[
+            int(np.searchsorted(self.backend.segments, submap_id, side="right")) - 1], [])
+        if len(members) < self.config.upgrade.min_keyframes:
+            return f"too few keyframes for a running upgrade ({len(members)})"
+        try:
+            upgrade = self._estimate_upgrade(members, world)
+        except (UserError, ValueError, np.linalg.LinAlgError) as exc:
+            return f"no running upgrade: {exc}"
+        if upgrade.applied:
+            return upgrade.H_metric_world, upgrade.focal
+        if upgrade.reason.startswith("already metric"):
+            return np.eye(4), upgrade.focal
+        return f"no running upgrade: {upgrade.reason}"
+
+    def _segment_members(self, world: WorldEstimate) -> dict[int, list[StoredKeyframe]]:
+        """The keyframes placed in ``world``, by the first submap of their map segment."""
+        keyframes = [k for k in self.keyframes if k.submap_id in world.H_world_submap]
+        starts = self.backend.segments
+        segment_of = np.searchsorted(starts, [k.submap_id for k in keyframes], side="right") - 1
+        members: dict[int, list[StoredKeyframe]] = {}
+        for keyframe, segment in zip(keyframes, segment_of):
+            members.setdefault(int(starts[segment]), []).append(keyframe)
+        return members
+
+    def _estimate_upgrade(self, members: Sequence[StoredKeyframe], world: WorldEstimate):
+        """``sl4slam.upgrade.estimate_metric_upgrade`` of these keyframes' cameras in ``world``."""
+        from .upgrade import estimate_metric_upgrade
+
+        return estimate_metric_upgrade(world_cameras(members, world.H_world_submap, world.H_world_keyframe),
+                                       np.stack([k.principal_point for k in members]), self.config.upgrade,
+                                       image_sizes=np.array([k.shape[::-1] for k in members]))
 
     def _graph_measurement(self, H: np.ndarray) -> np.ndarray:
         return normalize_sl4(H) if self.backend.kind == "sl4" else H
@@ -542,21 +624,14 @@ class SLAMPipeline:
         """Upgrade each map segment to a metric frame (one ``H_metric_world`` per segment, applied to
         its submaps' and keyframes' transforms: every pose and map point follows). Returns the
         upgraded estimate and one summary per segment."""
-        from .upgrade import estimate_metric_upgrade
-
         H_world_submap, H_world_keyframe = world.H_world_submap, world.H_world_keyframe
-        keyframes = [k for k in self.keyframes if k.submap_id in H_world_submap]
-        if not keyframes or not metric_upgrade_on(self.config):
+        if not metric_upgrade_on(self.config):
             return world, []
-        starts = self.backend.segments
-        segment_of = np.searchsorted(starts, [k.submap_id for k in keyframes], side="right") - 1
         upgraded, summaries = WorldEstimate(dict(H_world_submap), dict(H_world_keyframe)), []
-        for segment in np.unique(segment_of):
-            members = [k for k, s in zip(keyframes, segment_of) if s == segment]
-            P = world_cameras(members, H_world_submap, H_world_keyframe)
+        for start, members in sorted(self._segment_members(world).items()):
+            segment = self.backend.segments.index(start)
             try:
-                upgrade = estimate_metric_upgrade(P, np.stack([k.principal_point for k in members]), self.config.upgrade,
-                                                  image_sizes=np.array([k.shape[::-1] for k in members]))
+                upgrade = self._estimate_upgrade(members, world)
             except (UserError, ValueError, np.linalg.LinAlgError) as exc:
                 # e.g. a camera at infinity in a broken map: the map is kept as it is, never lost
                 summaries.append({"segment": int(segment), "applied": False, "reason": f"cannot be estimated: {exc}"})

@@ -31,7 +31,12 @@ for the sought ``H = H_metric_world`` (Hartley & Zisserman, Multiple View Geomet
    baseline with noisy cameras leaves the plane at infinity uncertain: the upgrade is then
    skipped and the reason names the part that is not determined.
 5. Never worse: skipped when the kept cameras already satisfy the constraints to within
-   ``metric_residual``, and unless their constraint residual falls clearly (``max_residual_ratio``).
+   ``metric_residual``, unless their constraint residual falls clearly (``max_residual_ratio``),
+   and when it stays above the noise (``max_residual_after``) without having fallen far
+   (``inconsistent_ratio``): the cameras are then not one projective frame (submaps with errors of
+   their own as large as the common distortion), and one transform would trade one distortion
+   for another. Links that only their shared camera fixes are what splits a map into several
+   frames; ``sl4slam.completion`` completes them while the map is built.
 6. Gauge: the similarity is chosen so that the first kept keyframe keeps its camera centre and
    orientation (as decomposed from the input), and the median distance of the kept camera centres
    to it is kept too, so trajectory files stay readable. The result is in SL(4), orientation
@@ -453,6 +458,10 @@ def estimate_metric_upgrade(
     if not after <= config.max_residual_ratio * before:
         return skipped(f"no clear improvement (constraint residual {before:.2g} -> {after:.2g})", inliers, condition, uncertainty,
                        **details)
+    if after > config.max_residual_after and after > config.inconsistent_ratio * before:
+        return skipped(f"the cameras are not one projective frame (constraint residual {before:.2g} -> {after:.2g}: "
+                       f"above {config.max_residual_after:g} and not below {config.inconsistent_ratio:g}x the "
+                       "distortion removed)", inliers, condition, uncertainty, **details)
     focals = np.sqrt(K_out[:, 0, 0] * K_out[:, 1, 1])
     return MetricUpgrade(
         H_metric_world=H, applied=True, reason="applied", residual_before=before, residual_after=after,

@@ -525,7 +525,9 @@ class FactorGraphBackend(Backend):
         nodes against 9-30 ms: benchmarks/results/keyframe_graph.md), so call it for loop candidates only."""
         H_i_j = self._check("H_i_j", H_i_j)
         keys = [self.key(j), self.key(i)]
-        values = self._isam.calculateBestEstimate()
+        values = gtsam.Values()  # the two nodes only: a full estimate costs O(map) per candidate
+        for key in keys:
+            values.insert(key, self._estimate_one(key))
         factor = self.relative_factor(i, j, H_i_j, gtsam.noiseModel.Unit.Create(self.dim))
         A, _ = factor.linearize(values).jacobian()
         order = list(factor.keys())
