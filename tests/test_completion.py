@@ -107,3 +107,17 @@ def test_a_link_that_moves_the_shared_camera_is_told_apart():
     other = w["H_true"].copy()
     other[0, 3] += 0.1
     assert shared_camera_agreement(w["P_a_shared"], w["P_b"][0], other) > 1e-3
+
+
+def test_a_failing_fit_keeps_the_link(monkeypatch):
+    import sl4slam.completion as completion
+
+    def failing(*args, **kwargs):
+        raise ValueError("Residuals are not finite")
+
+    monkeypatch.setattr(completion, "least_squares", failing)
+    w = two_submaps(8)
+    link = normalize_sl4(w["H_true"] @ bending(np.array([0.05, 0.02, 0.05]), w["centre"], w["X_b"]))
+    result = complete_camera_link(link, w["centre"], w["X_b"], w["P_b"][1:], PP, np.linalg.inv(w["D_a"]), 256.0)
+    assert not result.applied and result.reason.startswith("the fit failed")
+    assert np.array_equal(result.H_a_b, link)

@@ -128,7 +128,7 @@ def complete_camera_link(
         H_metric_a: ``(4, 4)`` maps submap a's coordinates into a metric frame (the upgrade of the
             map so far composed with submap a's place in it).
         focal: px, the map's focal length in that frame (the upgrade's).
-        config: the upgrade's robust loss, noise scale, focal weight, conditioning and
+        config: the upgrade's robust loss, noise scale, focal weight, uncertainty and
             improvement thresholds (``UpgradeConfig``).
         free: ``(k, 3)`` rows spanning the ``p`` to search (None: all three). A camera-constrained
             fit has fixed the plane's tilt from its points: only ``p`` along the plane's normal,
@@ -161,8 +161,11 @@ def complete_camera_link(
         return kept("the link's cameras cannot be decomposed", before)
     if before < config.metric_residual:
         return kept(f"already metric (constraint residual {before:.2g} < {config.metric_residual:g})", before)
-    solution = least_squares(residuals, np.zeros(len(basis)), loss=config.loss, f_scale=config.loss_scale, x_scale=0.01,
-                             max_nfev=config.max_iterations)
+    try:
+        solution = least_squares(residuals, np.zeros(len(basis)), loss=config.loss, f_scale=config.loss_scale,
+                                 x_scale=0.01, max_nfev=config.max_iterations)
+    except (ValueError, np.linalg.LinAlgError) as exc:  # a bending that sends a camera to infinity
+        return kept(f"the fit failed ({exc})", before)
     after = float(np.sqrt(np.mean(solution.fun**2)))
     # standard deviation of p for constraints of noise loss_scale: b's cameras must pin the bending
     # down to a hundredth of the depth (max_uncertainty), as the upgrade its plane at infinity
