@@ -313,8 +313,9 @@ class BackendConfig(Section):
     "submap" (one node per submap joined by 15-DOF links, VGGT-SLAM), or "auto": the keyframe graph
     for the SL(4) group, the submap graph for Sim(3). The keyframe graph's ATE is 0.49x the submap
     graph's on the synthetic world under the vggt simulator profile, 0.31x on TUM fr1/desk, 0.30x
-    even under a pure per-submap projective distortion of 0.1 (the submap graph's fallbacks on flat
-    shared frames cannot express it), and 0.70x the Sim(3) graph's under the vggt profile
+    under a pure per-submap projective distortion of 0.1 (both without the metric upgrade; with it
+    and its completed planar links the submap graph is 7x better there:
+    benchmarks/results/upgrade_pipeline.md), and 0.85x the Sim(3) graph's under the vggt profile
     (benchmarks/results/keyframe_graph.md, robustness.md; VGGT-SLAM 2.0 reports 0.041 against
     0.053 m on TUM). The demo keeps the submap graph: it shows what 15-DOF links model. The
     keyframe graph needs ``kind`` "sl4"."""
