@@ -52,7 +52,7 @@ from .geometry import decompose_projection, normalize_sl4, to_4x4
 from .keyframes import KeyframeSelector
 from .loops import LoopEvidence, LoopVerifier, grey_for_check
 from .progress import Progress, StageTimer
-from .submap import StoredKeyframe, confidence_levels, confidence_mask, submap_points
+from .submap import StoredKeyframe, confidence_levels, confidence_mask, principal_points, submap_points
 from .types import Aligner, Alignment, Frame, FrameSource, FrameView, Frontend, LoopCandidate, Retrieval, SubmapPrediction
 
 log = logging.getLogger("sl4slam")
@@ -500,18 +500,13 @@ class SLAMPipeline:
         prediction = dense.prediction
         others = [s for s in range(len(prediction.K)) if s != slot]
         cameras = np.stack([prediction.K[s] @ to_4x4(prediction.T_cam_submap[s])[:3] for s in others])
-        height, width = prediction.depth.shape[1:3]
-        pp = (np.asarray(prediction.principal_point, dtype=np.float64)[others] if prediction.principal_point is not None
-              else np.tile([width / 2.0, height / 2.0], (len(others), 1)))
         points = new_view.points[new_view.mask].astype(np.float64)
-        T = new_view.T_cam_submap
-        centre = -T[:3, :3].T @ T[:3, 3]
         # a camera-constrained fit took the plane's tilt from its points: only the relief along the
         # normal is left free; the calibration link took nothing from them
         free = plane_normal(points) if alignment.extras.get("camera_constrained") and len(points) >= 3 else None
-        completion = complete_camera_link(alignment.H, centre, points, cameras, pp,
-                                          H_metric_world @ self.backend.H_world_submap(old_submap), focal,
-                                          self.config.upgrade, free)
+        H_metric_old = H_metric_world @ self.backend.H_world_submap(old_submap)
+        completion = complete_camera_link(alignment.H, new_view.centre, points, cameras, principal_points(prediction)[others],
+                                          H_metric_old, focal, self.config.upgrade, free)
         alignment.extras["completion"] = completion.summary()
         if not completion.applied:
             return alignment

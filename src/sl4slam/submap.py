@@ -66,6 +66,15 @@ def submap_points(prediction: SubmapPrediction, use_point_head: bool = False, sl
     return unproject_depth(prediction.depth[slots], prediction.K[slots], prediction.T_cam_submap[slots])
 
 
+def principal_points(prediction: SubmapPrediction) -> np.ndarray:
+    """``(S, 2)`` float64 the principal point the frontend assumes for each frame (pixels): its own,
+    else VGGT's convention, the centre of the prediction grid."""
+    if prediction.principal_point is not None:
+        return np.asarray(prediction.principal_point, dtype=np.float64)
+    height, width = prediction.depth.shape[1:3]
+    return np.tile([width / 2.0, height / 2.0], (len(prediction.depth), 1))
+
+
 @dataclass
 class StoredKeyframe:
     """One keyframe as kept for the final map and trajectory (compact).
@@ -100,11 +109,6 @@ class StoredKeyframe:
     ) -> "StoredKeyframe":
         """Keep frame ``slot`` of a submap; ``mask`` ``(S, H, W)`` and ``levels`` from
         :func:`confidence_mask` and :func:`confidence_levels` of the same submap."""
-        height, width = prediction.depth.shape[1:]
-        if prediction.principal_point is not None:
-            principal_point = np.asarray(prediction.principal_point[slot], dtype=np.float64)
-        else:  # VGGT's convention: the centre of the prediction grid
-            principal_point = np.array([width / 2.0, height / 2.0])
         return cls(
             frame_index=int(frame_index),
             timestamp=float(timestamp),
@@ -115,7 +119,7 @@ class StoredKeyframe:
             confidence_rank=np.searchsorted(levels, prediction.confidence[slot, ::2, ::2]).astype(np.uint8),
             K=np.asarray(prediction.K[slot], dtype=np.float64),
             T_cam_submap=to_4x4(prediction.T_cam_submap[slot]),
-            principal_point=principal_point,
+            principal_point=principal_points(prediction)[slot],
         )
 
     @property

@@ -224,6 +224,12 @@ class FrameView:
         """``(3, 4)`` camera matrix ``K [R | t]`` in the submap frame."""
         return self.K @ np.asarray(self.T_cam_submap, dtype=np.float64)[:3]
 
+    @property
+    def centre(self) -> np.ndarray:
+        """``(3,)`` the camera's centre in the submap frame."""
+        T = np.asarray(self.T_cam_submap, dtype=np.float64)
+        return -T[:3, :3].T @ T[:3, 3]
+
 
 class Aligner(ABC):
     """Measures ``H_a_b`` between two submaps from one frame reconstructed in both.

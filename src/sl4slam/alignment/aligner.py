@@ -115,8 +115,7 @@ class SL4Aligner(PointAligner):
 
     def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
         cfg = self.config
-        centre_b = -view_b.T_cam_submap[:3, :3].T @ view_b.T_cam_submap[:3, 3]
-        low = relief(X_b, centre_b, cfg.max_points)
+        low = relief(X_b, view_b.centre, cfg.max_points)
         if low < cfg.min_relief:
             return self._degenerate(X_a, X_b, view_a, view_b, seed,
                                     f"shared frame nearly flat against its depth errors (relief {low:.3g} < {cfg.min_relief})")
