@@ -246,7 +246,7 @@ def test_loop_chi2_equals_the_batch_marginal_computation():
     """The loop gate's chi-square (from iSAM2's Bayes tree) against the textbook formula with a batch
     marginalization of the whole graph: e^T (A Sigma_ij A^T + Lambda^-1)^-1 e."""
     truth, odometry = sl4_problem(seed=4, odometry_noise=0.003)
-    backend = SL4Backend(BackendConfig())
+    backend = SL4Backend(BackendConfig())  # (node 4 lies on the closed cycle 2..12: no revisit priors here)
     run(backend, odometry, [(2, 12, np.linalg.inv(truth[2]) @ truth[12])])
     rng = np.random.default_rng(5)
     measured = np.linalg.inv(truth[4]) @ truth[19] @ random_sl4(rng, 0.5)
@@ -265,35 +265,140 @@ def test_loop_chi2_equals_the_batch_marginal_computation():
     assert chi2 > 1 and chi2 == pytest.approx(expected, rel=1e-3)
 
 
+# ---------------------------------------------------------------------------- revisits of closed places
+def lap_problem(kind: str, laps: int, places: int = 10, seed: int = 3):
+    """A camera going round the same ``places`` lap after lap: truth, noisy odometry, and a loop from
+    every node of a later lap to the same place one lap earlier (``H_i_j`` exact)."""
+    rng = np.random.default_rng(seed)
+    draw = (lambda: random_sl4(rng, 0.08)) if kind == "sl4" else (lambda: random_sim3(rng, 0.1, 1.0, 0.05))
+    place = [np.eye(4)] + [draw() for _ in range(places - 1)]
+    truth = [place[k % places] for k in range(laps * places)]
+    noise = (lambda: random_sl4(rng, 0.01)) if kind == "sl4" else (lambda: random_sim3(rng, 0.01, 0.05, 0.01))
+    odometry = [np.linalg.inv(truth[k - 1]) @ truth[k] @ noise() for k in range(1, len(truth))]
+    loops = [(k - places, k, np.linalg.inv(truth[k - places]) @ truth[k]) for k in range(places, len(truth))]
+    return truth, odometry, loops
+
+
+@pytest.mark.parametrize("kind", ["sl4", "sim3"])
+def test_revisits_reach_isam2_as_priors_and_the_final_polish_exactly(kind):
+    """Every loop after the first of a lap ties to a place on an already closed cycle: iSAM2 holds it
+    as a prior on the newer node, the final polish as the loop itself, and lands on the same optimum
+    as a graph that holds every loop exactly."""
+    truth, odometry, loops = lap_problem(kind, laps=4)
+    group = SL4Backend if kind == "sl4" else Sim3Backend
+    exact, revisits = group(BackendConfig(kind=kind)), group(BackendConfig(kind=kind), revisit_priors=True)
+    without_loops = run(group(BackendConfig(kind=kind)), odometry, [])
+    online = run(revisits, odometry, loops)
+    run(exact, odometry, loops)
+    # one loop per lap closes a new stretch (node 0..10, 11..21, 22..32), the others revisit it
+    assert revisits.num_loops == len(loops) == 30 and revisits.num_revisit_priors == 27
+    assert exact.num_revisit_priors == 0
+
+    def unary(graph):
+        return sum(1 for k in range(graph.size()) if len(graph.at(k).keys()) == 1)
+
+    assert unary(revisits.incremental_graph()) == 1 + 27 and unary(revisits.factor_graph()) == 1
+    assert revisits.factor_graph().size() == exact.factor_graph().size() == revisits.incremental_graph().size()
+    # the priors already pull the newer laps onto the map while the run goes on ...
+    assert map_error(online, truth) < 0.5 * map_error(without_loops, truth)
+    # ... and the polished map is the exact graph's optimum
+    polished, optimum = revisits.final_estimates(), exact.final_estimates()
+    for k in optimum:
+        np.testing.assert_allclose(polished[k], optimum[k], atol=1e-4)  # both stop at GN convergence
+    graph = exact.factor_graph()
+    values = exact.gtsam_values()
+    for k, H in polished.items():
+        values.update(exact.key(k), exact._to_gtsam(H))
+    assert graph.error(values) == pytest.approx(graph.error(exact.polished_values()), rel=1e-6)
+
+
+def test_revisit_priors_keep_the_bayes_tree_from_growing_with_the_laps():
+    """The cost of a loop update follows the Bayes tree's cliques: with every lap tied to the one
+    before, their fill grows with the laps; with revisits held as priors it stays flat."""
+
+    def fill_per_node(revisit_priors: bool, laps: int) -> float:
+        truth, odometry, loops = lap_problem("sl4", laps=laps)
+        backend = SL4Backend(BackendConfig(), revisit_priors=revisit_priors)
+        run(backend, odometry, loops)
+        return backend._isam.treeNnz() / backend.num_submaps
+
+    exact_growth = fill_per_node(False, 8) / fill_per_node(False, 3)
+    revisit_growth = fill_per_node(True, 8) / fill_per_node(True, 3)
+    assert exact_growth > 1.5 and revisit_growth < 1.15
+
+
+def test_a_revisit_is_gated_as_the_prior_isam2_takes():
+    """The loop gate's chi-square of a revisit: the prior's residual on the newer node against that
+    node's marginal (batch marginalization of iSAM2's graph) plus the measurement's covariance."""
+    truth, odometry = sl4_problem(seed=4, odometry_noise=0.003)
+    backend = SL4Backend(BackendConfig(), revisit_priors=True)
+    run(backend, odometry, [(2, 12, np.linalg.inv(truth[2]) @ truth[12])])
+    rng = np.random.default_rng(5)
+    measured = np.linalg.inv(truth[4]) @ truth[19] @ random_sl4(rng, 0.05)
+    information = np.diag(rng.uniform(1e4, 1e5, backend.dim))
+    assert backend.is_revisit(4, 19) and not backend.is_revisit(13, 19)
+    chi2 = backend.loop_chi2(4, 19, measured, information)
+
+    newer, prior, moved = backend.revisit_prior(4, 19, measured, information)
+    assert newer == 19
+    np.testing.assert_allclose(prior, backend.H_world_submap(4) @ measured / np.linalg.det(measured) ** 0.25, atol=1e-9)
+    values = backend.gtsam_values()
+    factor = gtsam.PriorFactorSL4(backend.key(19), gtsam.SL4(prior), gtsam.noiseModel.Unit.Create(15))
+    A = factor.linearize(values).jacobian()[0]
+    marginal = gtsam.Marginals(backend.incremental_graph(), values).marginalCovariance(backend.key(19))
+    error = np.asarray(factor.unwhitenedError(values))
+    expected = error @ np.linalg.solve(A @ marginal @ A.T + np.linalg.inv(moved), error)
+    assert chi2 > 1 and chi2 == pytest.approx(expected, rel=1e-3)
+    # the moved information describes the same noise: X_19 = X_4 H exp(-Ad(H^-1) xi) for X_19^-1 X_4 = H^-1 exp(xi)
+    xi = 1e-4 * rng.normal(size=15)
+    X4 = backend.H_world_submap(4)
+    X19 = X4 @ np.linalg.inv(np.linalg.inv(measured) @ sl4_exp(xi))
+    moved_xi = sl4_log(np.linalg.inv(prior) @ X19 * np.linalg.det(measured) ** 0.25 / np.linalg.det(X4) ** 0.25)
+    assert moved_xi @ moved @ moved_xi == pytest.approx(xi @ information @ xi, rel=1e-3)
+
+
 class FailingLoopBackend(SL4Backend):
     """GTSAM fails on the next loop update (as an indeterminate system would)."""
 
     fail_next_loop = False
+    fail_after_first_step = False  # fail once iSAM2 has taken the loop's first step (relinearized there)
 
-    def _solve(self, factors, values, had_loops):
-        if had_loops and self.fail_next_loop:
+    def _solve(self, factors, values, loop_keys):
+        if loop_keys and self.fail_next_loop:
             self.fail_next_loop = False
-            raise RuntimeError("Indeterminate linear system detected near variable s9 (simulated)")
-        return super()._solve(factors, values, had_loops)
+            if self.fail_after_first_step:
+                self._isam.update(factors, values)
+                params = gtsam.ISAM2UpdateParams()
+                params.force_relinearize = True
+                self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), params)
+            raise RuntimeError("\nIndeterminate linear system detected near variable s9 (simulated)")
+        return super()._solve(factors, values, loop_keys)
 
 
-def test_a_failed_loop_update_restores_the_estimate_it_started_from():
+@pytest.mark.parametrize("after_first_step", [False, True])
+def test_a_failed_loop_update_restores_the_estimate_it_started_from(after_first_step):
     """A graph that fails to absorb a loop is rebuilt at the estimate it had, not at the nodes' first
-    guesses (which an earlier loop has left behind), and keeps growing."""
+    guesses (which an earlier loop has left behind), and keeps growing: also when the failing loop
+    had already moved iSAM2's linearization point."""
     truth, odometry = sl4_problem(seed=6, odometry_noise=0.03)
-    backend = FailingLoopBackend(BackendConfig())
+    backend = FailingLoopBackend(BackendConfig(), revisit_priors=True)
+    backend.fail_after_first_step = after_first_step
     before = run(backend, odometry, [(1, 20, np.linalg.inv(truth[1]) @ truth[20])])
     guesses = chain(odometry)
     assert max(np.abs(before[k] - guesses[k]).max() for k in before) > 0.05  # the loop moved the map
     optimum = backend.final_estimates()  # (iSAM2 itself stops iterating within loop_step_threshold of it)
     backend.fail_next_loop = True
-    backend.add_loop(3, 17, np.linalg.inv(truth[3]) @ truth[17])
-    with pytest.raises(BackendUpdateError, match="Indeterminate"):
+    wrong = np.linalg.inv(truth[3]) @ truth[17] @ random_sl4(np.random.default_rng(1), 0.1)  # a step to undo
+    backend.add_loop(3, 17, wrong)
+    with pytest.raises(BackendUpdateError, match="^RuntimeError: Indeterminate"):  # the message's first line
         backend.update()
     after = backend.estimates()
     assert backend.num_loops == 1 and sorted(after) == sorted(before)
+    # the failed loop was a revisit (node 3 lies on the cycle 1..20): gone from both graphs
+    assert backend.num_revisit_priors == 0 and backend.factor_graph().size() == backend.incremental_graph().size()
+    # rebuilt at the optimum (within iSAM2's own step there, ~1e-4: SL(4)'s first-order chart);
     # rebuilt from the first guesses, one step left it 0.02 away
-    assert max(np.abs(after[k] - optimum[k]).max() for k in before) < 1e-6
+    assert max(np.abs(after[k] - optimum[k]).max() for k in before) < 1e-3
     backend.add_submap(NUM_SUBMAPS, odometry[0])
     backend.update()
     np.testing.assert_allclose(backend.H_world_submap(NUM_SUBMAPS), after[NUM_SUBMAPS - 1] @ odometry[0], atol=1e-6)

@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from sl4slam.alignment import HybridAligner
 from sl4slam.alignment.sim3 import calibration_scale_link
 from sl4slam.backend import BackendUpdateError, KeyframeBackend, Sim3Backend, SL4Backend, SubmapFrames, make_backend
-from sl4slam.backend.keyframe import sl4_adjoint, transport_information
+from sl4slam.backend.base import adjoint_matrix, transport_information
 from sl4slam.config import (AlignmentConfig, BackendConfig, SLAMConfig, alignment_model, attention_check,
                             metric_upgrade_on)
 from sl4slam.edges import is_camera_link
@@ -184,7 +184,7 @@ def test_moving_a_measurement_onto_the_nodes_keeps_its_chi_square() -> None:
     rng = np.random.default_rng(3)
     A, B = rigid(rng), rigid(rng)
     xi = rng.normal(size=15)
-    np.testing.assert_allclose(sl4_adjoint(A, GENERATORS) @ xi,
+    np.testing.assert_allclose(adjoint_matrix(A, GENERATORS) @ xi,
                                vee(A @ np.einsum("m,mij->ij", xi, GENERATORS) @ np.linalg.inv(A)), atol=1e-12)
     H = normalize_sl4(np.diag([1.2, 1.2, 1.2, 1.0]) @ rigid(rng))
     root = rng.normal(size=(15, 15))
@@ -220,19 +220,48 @@ def test_loop_check_and_rollback_work_on_keyframe_nodes(monkeypatch) -> None:
         backend.add_submap(3, np.eye(4), None, frames=SubmapFrames((99, 100), np.stack([np.eye(4)] * 2), shared=True))
 
 
+def test_revisits_of_closed_places_are_priors_on_keyframe_nodes() -> None:
+    """The keyframe graph holds a loop to a keyframe on an already closed cycle as a prior on the
+    query keyframe's node (``BackendConfig.revisit_priors``), and ends on the same optimum."""
+    rng = np.random.default_rng(8)
+    frames = [SubmapFrames(tuple(range(10 + 2 * k, 13 + 2 * k)), np.stack([np.eye(4), rigid(rng, 0.1, 0.2),
+                                                                         rigid(rng, 0.1, 0.2)]), shared=k > 0)
+              for k in range(4)]
+    odometry = [None] + [normalize_sl4(rigid(rng, 0.1, 0.2)) for _ in range(3)]
+    results = {}
+    for revisit_priors in (True, False):
+        backend = KeyframeBackend(BackendConfig(graph="keyframe", revisit_priors=revisit_priors))
+        assert backend.nodes.revisit_priors is revisit_priors
+        for k in range(4):
+            backend.add_submap(k, odometry[k], None, frames=frames[k])
+            backend.update()
+            if k >= 2:  # loops from submap k - 2's first keyframe to this submap's last, a little off the chain
+                older = k - 2
+                H = np.linalg.inv(backend.H_world_submap(older)) @ backend.H_world_submap(k) @ normalize_sl4(rigid(
+                    np.random.default_rng(k), 0.02, 0.05))
+                backend.add_loop(older, k, normalize_sl4(H), np.eye(15) * 1e3, frames=(frames[older].frame_indices[0],
+                                                                                       frames[k].frame_indices[-1]))
+                backend.update()
+        results[revisit_priors] = (backend.nodes.num_revisit_priors, backend.final_estimates())
+    # the second loop's older keyframe (frame 12, in submap 1) lies on the cycle the first closed
+    assert results[True][0] == 1 and results[False][0] == 0
+    for k in range(4):
+        np.testing.assert_allclose(results[True][1][k], results[False][1][k], atol=1e-5)
+
+
 def test_graph_setting() -> None:
     """"auto" is the keyframe graph for SL(4) and the submap graph for Sim(3); an explicit keyframe
     graph with Sim(3) is refused."""
     config = SLAMConfig()
     assert config.backend.graph == "auto" and config.backend.design == "keyframe"
     assert alignment_model(config) == "calibration" and attention_check(config) and not metric_upgrade_on(config)
-    assert isinstance(make_backend(config.backend), KeyframeBackend)
+    assert isinstance(make_backend(config.backend), KeyframeBackend) and make_backend(config.backend).nodes.revisit_priors
     config.upgrade.mode = "on"
     assert metric_upgrade_on(config)
     config.upgrade.mode = "auto"
     config.backend.graph = "submap"
     assert alignment_model(config) == "sl4" and not attention_check(config) and metric_upgrade_on(config)
-    assert isinstance(make_backend(config.backend), SL4Backend)
+    assert isinstance(make_backend(config.backend), SL4Backend) and not make_backend(config.backend).revisit_priors
     config.backend.kind, config.backend.graph = "sim3", "auto"
     config.validate()
     assert config.backend.design == "submap" and alignment_model(config) == "sim3-cameras" and not metric_upgrade_on(config)

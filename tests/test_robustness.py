@@ -110,10 +110,10 @@ class FlakyBackend(SL4Backend):
         super().__init__(config)
         self.fail_at = fail_at
 
-    def _solve(self, factors, values, had_loops):
+    def _solve(self, factors, values, loop_keys):
         if self.fail_at in self._pending_ids and not any(s == self.fail_at for s in self._segments):
             raise RuntimeError("IndeterminateSystemException: near variable s3 (simulated)")
-        return super()._solve(factors, values, had_loops)
+        return super()._solve(factors, values, loop_keys)
 
 
 def test_a_graph_update_that_fails_starts_a_new_segment(small_world: Path) -> None:

@@ -303,7 +303,7 @@ class BackendConfig(Section):
     advanced: ClassVar[frozenset[str]] = frozenset({
         "prior_sigma", "loop_kernel", "loop_kernel_width", "effective_points", "min_sigma", "max_sigma",
         "segment_sigma", "relinearize_threshold", "wildfire_threshold", "loop_step_threshold",
-        "max_loop_iterations", "frame_sigma"})
+        "max_loop_iterations", "frame_sigma", "revisit_priors"})
 
     kind: str = "sl4"
     """"sl4" (15-DOF projective, the paper) or "sim3" (7-DOF similarity, for comparison)."""
@@ -370,6 +370,12 @@ class BackendConfig(Section):
     sigma): a loop that corrects real drift is absorbed at once, a consistent one costs one step."""
     max_loop_iterations: int = 30
     """Cap on those extra iterations."""
+    revisit_priors: bool = True
+    """Keyframe graph: a loop whose older node lies on a cycle that an earlier loop closed (a revisit of a settled
+    place) reaches iSAM2 as a prior on its newer node, the older held at its estimate; the final
+    polish at the end of a run optimizes every loop between its two nodes. Keeps the cost of a loop
+    update flat in a map that revisits its places lap after lap (whose cliques otherwise grow with
+    the laps: 3.4x slower per submap after 17 laps without it; benchmarks/results/keyframe_graph.md)."""
 
     def validate(self) -> None:
         super().validate()

@@ -40,15 +40,28 @@ older node to the root, and relinearize every variable whose step exceeds the th
 follow the loop's span. Two thresholds keep that work small (``BackendConfig``): variables are
 relinearized once their step exceeds ``relinearize_threshold`` (1e-2), and after a loop iSAM2
 iterates only while some step exceeds ``loop_step_threshold`` (5e-2), i.e. when the loop
-corrects real drift. The estimate then sits within about 1e-4 (relative) of the optimal graph
-error; :meth:`FactorGraphBackend.final_estimates` removes that once, at the end of a run, with a
-batch Gauss-Newton polish of the whole graph. (GTSAM's SL(4) chart is first-order, so near the
-optimum the graph error is flat to about 1e-5 relative and solutions differ by ~1e-4 in their
-entries: beyond that, "converged" has no meaning.)
+corrects real drift. The estimate then sits within about 1e-4
+(relative) of the optimal graph error; :meth:`FactorGraphBackend.final_estimates` removes that
+once, at the end of a run, with a batch Gauss-Newton polish of the whole graph. (GTSAM's SL(4)
+chart is first-order, so near the optimum the graph error is flat to about 1e-5 relative and
+solutions differ by ~1e-4 in their entries: beyond that, "converged" has no meaning.)
+
+Revisits. A map that goes round the same places lap after lap, each lap tied to the others by
+loops, is a grid: its Bayes tree cliques widen with every lap, and so does the cost of each loop
+update (3.4x slower per submap after 17 laps of the synthetic world; benchmarks/results/
+keyframe_graph.md). So iSAM2 takes a loop as a between factor only when its older node is not yet
+on a cycle that an earlier loop closed; a loop to a place that is (a revisit) reaches iSAM2 as a
+prior on the newer node at the older node's current estimate (the keyframe graph's
+``BackendConfig.revisit_priors``; the submap graph, a few hundred nodes where the keyframe graph
+has thousands, stayed flat without it: 0.96 late / early after 17 laps).
+iSAM2's graph then stays a chain with one loop per closed stretch and unary factors, whatever the
+laps. Every loop is kept exactly in :meth:`FactorGraphBackend.factor_graph`, which the final
+polish optimizes, so the map a run ends with is the exact graph's optimum.
 """
 
 from __future__ import annotations
 
+import bisect
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
@@ -72,6 +85,49 @@ def check_matrix(name: str, M: Any) -> np.ndarray:
     if not np.all(np.isfinite(M)):
         raise ValueError(f"{name} contains NaN or Inf")
     return M
+
+
+def adjoint_matrix(A: np.ndarray, generators: np.ndarray) -> np.ndarray:
+    """``(dim, dim)`` matrix of ``xi -> vee(A hat(xi) A^-1)`` in the tangent basis ``generators``
+    ``(dim, 4, 4)`` (any basis of the group's Lie algebra: SL(4)'s or Sim(3)'s)."""
+    A = np.asarray(A, dtype=np.float64)
+    conjugated = np.einsum("ij,mjk,kl->mil", A, generators, np.linalg.inv(A))  # A G_m A^-1
+    basis = generators.reshape(len(generators), 16).T
+    coefficients, *_ = np.linalg.lstsq(basis, conjugated.reshape(len(generators), 16).T, rcond=None)
+    return coefficients
+
+
+def transport_information(information: np.ndarray, A: np.ndarray, generators: np.ndarray) -> np.ndarray:
+    """Information of a tangent noise ``xi`` re-expressed for ``Ad(A) xi``: ``Ad^-T I Ad^-1``.
+
+    A between factor holds ``Z = H^-1`` with noise ``Z exp(xi)`` (module doc); for ``A H B`` that
+    is ``B^-1 Z A^-1 exp(Ad(A) xi)``, so the keyframe graph moves a measurement's information this
+    way when it moves the measurement onto keyframe nodes.
+    """
+    Ad_inv = np.linalg.inv(adjoint_matrix(A, generators))
+    moved = Ad_inv.T @ np.asarray(information, dtype=np.float64) @ Ad_inv
+    return 0.5 * (moved + moved.T)
+
+
+class ClosedSpans:
+    """Union of closed integer intervals ``[lo, hi]`` (positions in a graph's insertion order)."""
+
+    def __init__(self) -> None:
+        self.starts: list[int] = []
+        self.ends: list[int] = []
+
+    def add(self, lo: int, hi: int) -> None:
+        """Add ``[lo, hi]``, merged with the intervals it overlaps or touches."""
+        lo, hi = min(lo, hi), max(lo, hi)
+        first = bisect.bisect_left(self.ends, lo - 1)  # the first interval ending at or after lo - 1
+        last = bisect.bisect_right(self.starts, hi + 1)  # past the last one starting by hi + 1
+        if first < last:
+            lo, hi = min(lo, self.starts[first]), max(hi, self.ends[last - 1])
+        self.starts[first:last], self.ends[first:last] = [lo], [hi]
+
+    def contains(self, position: int) -> bool:
+        k = bisect.bisect_right(self.starts, position) - 1
+        return k >= 0 and position <= self.ends[k]
 
 
 @dataclass(frozen=True)
@@ -109,6 +165,27 @@ class WorldEstimate:
 
     H_world_submap: dict[int, np.ndarray]
     H_world_keyframe: dict[int, np.ndarray] = field(default_factory=dict)
+
+
+def gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int = 20) -> gtsam.Values:
+    """``values`` moved to the optimum of ``graph`` by batch Gauss-Newton, one step at a time, each
+    kept only while it lowers the error (GTSAM's SL(4) chart is first-order, so plain Gauss-Newton
+    can overshoot at the 1e-7 level once converged); a singular step ends it. O(graph)."""
+    error = graph.error(values)
+    optimizer = gtsam.GaussNewtonOptimizer(graph, values)
+    for _ in range(int(max_iterations)):
+        try:
+            optimizer.iterate()
+        except RuntimeError:
+            break
+        new_error = optimizer.error()
+        if not new_error < error:
+            break
+        converged = error - new_error <= 1e-12 * error
+        values, error = gtsam.Values(optimizer.values()), new_error  # a copy: the optimizer owns its values
+        if converged:
+            break
+    return values
 
 
 class Backend(ABC):
@@ -191,17 +268,21 @@ class FactorGraphBackend(Backend):
 
     Args:
         config: sigmas, the loop kernel and iSAM2's thresholds (``BackendConfig``).
+        revisit_priors: hold revisits of closed places as priors in iSAM2 (:meth:`is_revisit`); the
+            keyframe graph turns it on with ``BackendConfig.revisit_priors``.
     """
 
-    def __init__(self, config: BackendConfig) -> None:
+    def __init__(self, config: BackendConfig, revisit_priors: bool = False) -> None:
         config.validate()
         self.config = config
+        self.revisit_priors = revisit_priors
         self._isam = self._new_isam()
         self._prior_noise = gtsam.noiseModel.Isotropic.Sigma(self.dim, config.prior_sigma)
         self._segment_noise = gtsam.noiseModel.Isotropic.Sigma(self.dim, config.segment_sigma)
 
         self._order: list[int] = []  # submap ids in insertion order
         self._known: set[int] = set()
+        self._rank: dict[int, int] = {}  # submap id -> position in insertion order
         self._segments: list[int] = []  # first submap of every segment
         self._pending_factors = gtsam.NonlinearFactorGraph()
         self._pending_values = gtsam.Values()
@@ -210,6 +291,15 @@ class FactorGraphBackend(Backend):
         # Everything iSAM2 holds, with the initial guesses, so a failed update can be undone.
         self._committed_factors = gtsam.NonlinearFactorGraph()
         self._committed_values = gtsam.Values()
+        # The graph as measured, with every loop between its two nodes: iSAM2 holds revisits of
+        # closed places as priors instead (see add_loop); the final polish optimizes this one.
+        self._pending_exact = gtsam.NonlinearFactorGraph()
+        self._exact_factors = gtsam.NonlinearFactorGraph()
+        self._closed = ClosedSpans()  # insertion-order spans of the cycles exact loops closed
+        self._pending_spans: list[tuple[int, int]] = []
+        self._pending_revisits = 0
+        self._pending_loop_keys: list[int] = []  # GTSAM keys of the pending loop factors
+        self.num_revisit_priors = 0
         self._last_estimate: np.ndarray | None = None  # of the newest submap, seeds the next guess
 
         self.num_loops = 0
@@ -221,9 +311,9 @@ class FactorGraphBackend(Backend):
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
         params.relinearizeSkip = 1
-        gauss_newton = gtsam.ISAM2GaussNewtonParams()
-        gauss_newton.setWildfireThreshold(self.config.wildfire_threshold)
-        params.setOptimizationParams(gauss_newton)
+        gauss_newton_params = gtsam.ISAM2GaussNewtonParams()
+        gauss_newton_params.setWildfireThreshold(self.config.wildfire_threshold)
+        params.setOptimizationParams(gauss_newton_params)
         return gtsam.ISAM2(params)
 
     # ------------------------------------------------------------------ group hooks
@@ -303,9 +393,15 @@ class FactorGraphBackend(Backend):
             raise ValueError(f"submap {submap_id} was already added")
         return submap_id
 
-    def _insert(self, submap_id: int, guess: np.ndarray, factor: Any) -> None:
+    def _push(self, factor: Any, exact: Any = None) -> None:
+        """Queue a factor for iSAM2 and its exact form (``None``: the same) for the final polish."""
         self._pending_factors.push_back(factor)
+        self._pending_exact.push_back(factor if exact is None else exact)
+
+    def _insert(self, submap_id: int, guess: np.ndarray, factor: Any) -> None:
+        self._push(factor)
         self._pending_values.insert(self.key(submap_id), self._to_gtsam(guess))
+        self._rank[submap_id] = len(self._order)
         self._order.append(submap_id)
         self._known.add(submap_id)
         self._pending_ids.append(submap_id)
@@ -356,18 +452,68 @@ class FactorGraphBackend(Backend):
                  frames: tuple[int, int] | None = None) -> None:
         """Add a loop factor ``x_i ~ H_i_j x_j`` between already added submaps ``i != j``.
 
-        Uses ``BackendConfig.loop_kernel`` (none / Huber / Cauchy, width in whitened units).
+        Uses ``BackendConfig.loop_kernel`` (none / Huber / Cauchy, width in whitened units). With
+        ``revisit_priors``, a loop whose older node lies on a cycle an earlier loop
+        closed reaches iSAM2 as a prior on the newer node (:meth:`revisit_prior`); the final polish
+        still optimizes it between the two nodes.
         """
+        i, j, H_i_j = self._check_loop(i, j, H_i_j)
+        noise = self.noise_model(information, loop=True)
+        exact = self.relative_factor(i, j, H_i_j, noise)
+        if self.is_revisit(i, j):
+            newer, prior, moved = self.revisit_prior(i, j, H_i_j, information)
+            self._push(self._prior_factor(self.key(newer), self._to_gtsam(prior), self.noise_model(moved, loop=True)),
+                       exact)
+            self._pending_revisits += 1
+            self.num_revisit_priors += 1
+            self._pending_loop_keys.append(self.key(newer))
+        else:
+            self._push(exact)
+            self._pending_spans.append(tuple(sorted((self._rank[i], self._rank[j]))))
+        self._pending_loops += 1
+        self.num_loops += 1
+
+    def _check_loop(self, i: int, j: int, H_i_j: np.ndarray) -> tuple[int, int, np.ndarray]:
         i, j = self._check_id(i), self._check_id(j)
         for submap_id in (i, j):
             if submap_id not in self._known:
                 raise ValueError(f"loop refers to submap {submap_id}, which was not added")
         if i == j:
             raise ValueError(f"a loop needs two different submaps, got {i} twice")
-        H_i_j = self._check("H_i_j", H_i_j)
-        self._pending_factors.push_back(self.relative_factor(i, j, H_i_j, self.noise_model(information, loop=True)))
-        self._pending_loops += 1
-        self.num_loops += 1
+        return i, j, self._check("H_i_j", H_i_j)
+
+    def is_revisit(self, i: int, j: int) -> bool:
+        """Whether iSAM2 takes the loop between ``i`` and ``j`` as a prior on the newer node: with
+        ``revisit_priors``, when the older node is optimized (not pending) and lies on a cycle that
+        an earlier loop closed (between the two ends of that loop, in insertion order).
+
+        Why: a map that revisits its places lap after lap, every lap tied to the others by loops,
+        is a grid whose Bayes tree cliques grow with the number of laps, and with them the cost of
+        every loop update (benchmarks/results/keyframe_graph.md). A place already closed into the
+        map has settled; tying a revisit to it as a prior keeps iSAM2's graph a chain with unary
+        factors. The first loop over a stretch of the map still enters exactly and corrects it."""
+        if not self.revisit_priors:
+            return False
+        older = min((i, j), key=self._rank.__getitem__)
+        return not self._pending_values.exists(self.key(older)) and self._closed.contains(self._rank[older])
+
+    def revisit_prior(self, i: int, j: int, H_i_j: np.ndarray,
+                      information: np.ndarray | None) -> tuple[int, np.ndarray, np.ndarray | None]:
+        """The loop ``x_i ~ H_i_j x_j`` as a prior on its newer node, the older held at its estimate.
+
+        Returns ``(newer, prior (4, 4), information)``. The between factor says
+        ``X_j^-1 X_i = H_i_j^-1 exp(xi)`` (module doc); with ``X_i`` known that is
+        ``X_j = X_i H_i_j exp(-Ad(H_i_j^-1) xi)``, a prior at ``X_i H_i_j`` whose information is moved
+        by that adjoint; with ``X_j`` known, ``X_i = X_j H_i_j^-1 exp(xi)`` keeps it as it is.
+        """
+        older = min((i, j), key=self._rank.__getitem__)
+        X_older = self._from_gtsam(self._estimate_one(self.key(older)))
+        if older == i:
+            if information is None:  # the isotropic default, which the adjoint does not keep isotropic
+                information = np.eye(self.dim) / self.config.sigma**2
+            moved = transport_information(information, self._inverse(H_i_j), self.generators())
+            return j, self._check("revisit prior", X_older @ H_i_j), moved
+        return i, self._check("revisit prior", X_older @ self._inverse(H_i_j)), information
 
     # ------------------------------------------------------------------ optimization
     def update(self) -> None:
@@ -376,29 +522,39 @@ class FactorGraphBackend(Backend):
         Pure odometry: the new node's guess already satisfies its factor, so iSAM2 re-eliminates
         only the top of the Bayes tree (constant cost). Loop closures: further iSAM2 steps relinearize
         every variable whose step exceeds ``relinearize_threshold``, while some step exceeds
-        ``loop_step_threshold`` (at most ``max_loop_iterations``). ``last_update_seconds`` records
-        the wall time. If GTSAM fails (an indeterminate system), the pending nodes and factors are
-        dropped, the graph is rebuilt from what it held before, and :class:`BackendUpdateError` says why.
+        ``loop_step_threshold`` (at most ``max_loop_iterations``; :meth:`_largest_step` says which
+        steps are read). ``last_update_seconds`` records the wall time. If GTSAM fails (an indeterminate system),
+        the pending nodes and factors are dropped, the graph is rebuilt from what it held before,
+        and :class:`BackendUpdateError` says why.
         """
         start = time.perf_counter()
         iterations = 0
         if self._pending_factors.size() or self._pending_values.size():
-            factors, values, had_loops = self._pending_factors, self._pending_values, self._pending_loops > 0
-            # Loops move the whole map: keep the estimate they start from, so that a failure rebuilds
-            # the graph there and not from the nodes' first guesses, which a long run has left far
-            # behind (rebuilt from those, every later update of a 300-submap lap replay failed).
-            before = self._isam.calculateEstimate() if had_loops and self._committed_values.size() else None
+            factors, values = self._pending_factors, self._pending_values
+            # what the loop iterations watch: the whole map after a loop that closes a cycle, only the
+            # nodes that revisit priors pull on when there are none of those
+            loop_keys = "all" if self._pending_spans else self._pending_loop_keys
+            # Loops move the map: keep the point iSAM2 last solved at, so that a failure rebuilds the
+            # graph from there (a copy: about 1 ms at 5000 nodes). An odometry step leaves it as it was.
+            before = gtsam.Values(self._isam.getLinearizationPoint()) if loop_keys else None
             try:
-                iterations = self._solve(factors, values, had_loops)
+                iterations = self._solve(factors, values, loop_keys)
             except RuntimeError as exc:  # GTSAM's IndeterminateSystemException and relatives
                 self._roll_back(before)
-                raise BackendUpdateError(f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}") from None
+                first_line = next((line.strip() for line in str(exc).splitlines() if line.strip()), "")
+                raise BackendUpdateError(f"{type(exc).__name__}: {first_line}") from None
             finally:
+                exact, spans = self._pending_exact, self._pending_spans
                 self._pending_factors = gtsam.NonlinearFactorGraph()
+                self._pending_exact = gtsam.NonlinearFactorGraph()
                 self._pending_values = gtsam.Values()
-                self._pending_loops = 0
+                self._pending_loops = self._pending_revisits = 0
+                self._pending_spans, self._pending_loop_keys = [], []
             self._committed_factors.push_back(factors)
+            self._exact_factors.push_back(exact)
             self._committed_values.insert(values)
+            for span in spans:
+                self._closed.add(*span)
             self._pending_ids = []
             if self._order:
                 self._last_estimate = self._from_gtsam(self._estimate_one(self.key(self._order[-1])))
@@ -407,38 +563,61 @@ class FactorGraphBackend(Backend):
         self.total_update_seconds += self.last_update_seconds
         self.num_updates += 1
 
-    def _solve(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, had_loops: bool) -> int:
+    def _solve(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, loop_keys: list[int] | str) -> int:
+        """iSAM2 steps for one update; ``loop_keys``: the GTSAM keys whose steps decide whether to
+        iterate after loops ("all": every variable's; empty: no loops, one step)."""
         self._isam.update(factors, values)
         iterations = 1
-        if had_loops:
+        if loop_keys:
             empty_graph, empty_values = gtsam.NonlinearFactorGraph(), gtsam.Values()
             update_params = gtsam.ISAM2UpdateParams()
             update_params.force_relinearize = True
             while iterations < 1 + self.config.max_loop_iterations:
-                step = np.abs(self._isam.getDelta().vector())
-                if step.size == 0 or step.max() < self.config.loop_step_threshold:
+                if self._largest_step(loop_keys) < self.config.loop_step_threshold:
                     break
                 self._isam.update(empty_graph, empty_values, update_params)
                 iterations += 1
         return iterations
 
-    def _roll_back(self, estimate: gtsam.Values | None = None) -> None:
-        """Forget the pending nodes and rebuild iSAM2 from the committed factors, linearized at
-        ``estimate`` (the committed nodes' values before the failed update), else where the failed
-        iSAM2 had linearized them (an odometry step leaves those values as they were), else at
-        their first guesses."""
-        if estimate is None:
-            estimate = self._committed_linearization_point()
+    def _largest_step(self, loop_keys: list[int] | str) -> float:
+        """The largest entry of iSAM2's current step over ``loop_keys`` ("all": the whole map).
+
+        A loop that closes a cycle can move any node of it, so its update watches every step (an
+        O(map) read; such loops are rare once revisits are priors). A revisit prior pulls on one
+        node, whose step is the largest of the correction it spreads down the chain; reading only
+        it keeps the update of a revisit O(1) (the whole step vector of 5000 nodes costs 1.6 ms)."""
+        delta = self._isam.getDelta()
+        if loop_keys == "all":
+            step = np.abs(delta.vector())
+            return float(step.max()) if step.size else 0.0
+        return max(float(np.abs(delta.at(key)).max()) for key in loop_keys)
+
+    def _roll_back(self, start: gtsam.Values | None = None) -> None:
+        """Forget the pending nodes and rebuild iSAM2 from the committed factors at their optimum,
+        found by Gauss-Newton from ``start`` (where iSAM2 last solved them), else from where the
+        failed iSAM2 had linearized them, else from their first guesses (which a long run has left
+        far behind: rebuilt from those, every later update of a 300-submap lap replay failed).
+        O(map), on failure only."""
+        if start is None:
+            start = self._committed_linearization_point()
         for submap_id in self._pending_ids:
             self._order.remove(submap_id)
             self._known.discard(submap_id)
+            self._rank.pop(submap_id, None)
             if submap_id in self._segments:
                 self._segments.remove(submap_id)
         self._pending_ids = []
         self.num_loops -= self._pending_loops
+        self.num_revisit_priors -= self._pending_revisits
         self._isam = self._new_isam()
         if self._committed_factors.size():
-            self._isam.update(self._committed_factors, estimate if estimate is not None else self._committed_values)
+            points = [gauss_newton(self._committed_factors, start), start] if start is not None else []
+            for point in [*points, self._committed_values]:
+                try:
+                    self._isam.update(self._committed_factors, point)
+                    break
+                except RuntimeError:  # not solvable there: the next point, on a fresh iSAM2
+                    self._isam = self._new_isam()
         self._last_estimate = (self._from_gtsam(self._estimate_one(self.key(self._order[-1])))
                                if self._order else None)
 
@@ -453,7 +632,7 @@ class FactorGraphBackend(Backend):
                     return None
                 values.insert(key, element)
             return values
-        except RuntimeError:
+        except (RuntimeError, ValueError):  # ValueError: a node the failed step left degenerate
             return None
 
     # ------------------------------------------------------------------ results
@@ -497,49 +676,45 @@ class FactorGraphBackend(Backend):
         return {submap_id: self._from_gtsam(self._at(values, self.key(submap_id))) for submap_id in self._order}
 
     def polished_values(self, max_iterations: int = 20) -> gtsam.Values:
-        """iSAM2's estimate polished by batch Gauss-Newton (see :meth:`final_estimates`), as ``gtsam.Values``."""
-        graph = self.factor_graph()
-        values = self._isam.calculateBestEstimate()
-        error = graph.error(values)
-        optimizer = gtsam.GaussNewtonOptimizer(graph, values)
-        for _ in range(int(max_iterations)):
-            # One step at a time, kept only while it lowers the error: GTSAM's SL(4) chart is
-            # first-order, so plain Gauss-Newton can overshoot at the 1e-7 level once converged.
-            try:
-                optimizer.iterate()
-            except RuntimeError:  # a singular polish step: iSAM2's estimate stands
-                break
-            new_error = optimizer.error()
-            if not new_error < error:
-                break
-            converged = error - new_error <= 1e-12 * error
-            values, error = gtsam.Values(optimizer.values()), new_error  # a copy: the optimizer owns its values
-            if converged:
-                break
-        return values
+        """iSAM2's estimate polished by batch Gauss-Newton on :meth:`factor_graph` (see
+        :meth:`final_estimates`), as ``gtsam.Values``."""
+        return gauss_newton(self.factor_graph(), self._isam.calculateBestEstimate(), max_iterations)
 
     def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray,
                   frames: tuple[int, int] | None = None) -> float:
         """See :meth:`Backend.loop_chi2`. The two nodes' joint covariance comes from iSAM2's Bayes
         tree (equal to a batch marginalization of the whole graph to 1e-11, which cost 0.3 s at 4000
-        nodes against 9-30 ms: benchmarks/results/keyframe_graph.md), so call it for loop candidates only."""
-        H_i_j = self._check("H_i_j", H_i_j)
-        keys = [self.key(j), self.key(i)]
-        values = gtsam.Values()  # the two nodes only: a full estimate costs O(map) per candidate
+        nodes against 9-30 ms: benchmarks/results/keyframe_graph.md), so call it for loop candidates only.
+        A revisit (:meth:`is_revisit`) is tested as iSAM2 would take it: the prior on the newer node
+        against that node's marginal, the older held at its estimate."""
+        i, j, H_i_j = self._check_loop(i, j, H_i_j)
+        unit = gtsam.noiseModel.Unit.Create(self.dim)
+        if self.is_revisit(i, j):
+            newer, prior, moved = self.revisit_prior(i, j, H_i_j, information)
+            factor, keys = self._prior_factor(self.key(newer), self._to_gtsam(prior), unit), [self.key(newer)]
+            information = moved
+        else:
+            factor, keys = self.relative_factor(i, j, H_i_j, unit), [self.key(j), self.key(i)]
+        values = gtsam.Values()  # the nodes the factor reads: a full estimate costs O(map) per candidate
         for key in keys:
             values.insert(key, self._estimate_one(key))
-        factor = self.relative_factor(i, j, H_i_j, gtsam.noiseModel.Unit.Create(self.dim))
         A, _ = factor.linearize(values).jacobian()
         order = list(factor.keys())
         if order != keys:  # jacobian blocks follow the factor's key order
             A = np.concatenate([A[:, order.index(k) * self.dim:(order.index(k) + 1) * self.dim] for k in keys], axis=1)
-        joint = self._isam.jointMarginalCovariance(keys).fullMatrix()
+        joint = (self._isam.marginalCovariance(keys[0]) if len(keys) == 1
+                 else self._isam.jointMarginalCovariance(keys).fullMatrix())
         covariance = A @ joint @ A.T + np.linalg.inv(information)
         error = np.asarray(factor.unwhitenedError(values), dtype=np.float64)
         return float(error @ np.linalg.solve(covariance, error))
 
     def factor_graph(self) -> gtsam.NonlinearFactorGraph:
-        """The factors optimized so far (priors, odometry, loops), e.g. for a batch comparison."""
+        """The factors optimized so far (priors, odometry, loops), every loop between its two nodes
+        (as the final polish optimizes them), e.g. for a batch comparison."""
+        return gtsam.NonlinearFactorGraph(self._exact_factors)
+
+    def incremental_graph(self) -> gtsam.NonlinearFactorGraph:
+        """The factors iSAM2 holds: :meth:`factor_graph` with revisits as priors (:meth:`is_revisit`)."""
         return gtsam.NonlinearFactorGraph(self._isam.getFactorsUnsafe())
 
     def gtsam_values(self) -> gtsam.Values:

@@ -41,28 +41,8 @@ import numpy as np
 
 from ..config import BackendConfig
 from ..geometry import normalize_sl4, se3_inverse, to_4x4
-from .base import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
+from .base import Backend, BackendUpdateError, SubmapFrames, WorldEstimate, transport_information
 from .sl4 import SL4Backend
-
-
-def sl4_adjoint(A: np.ndarray, generators: np.ndarray) -> np.ndarray:
-    """``(dim, dim)`` matrix of ``xi -> vee(A hat(xi) A^-1)`` in the basis ``generators`` ``(dim, 4, 4)``
-    (orthonormal in the Frobenius inner product, as GTSAM's SL(4) basis is)."""
-    A = np.asarray(A, dtype=np.float64)
-    conjugated = np.einsum("ij,mjk,kl->mil", A, generators, np.linalg.inv(A))  # A G_m A^-1
-    return np.einsum("nij,mij->nm", generators, conjugated)
-
-
-def transport_information(information: np.ndarray, A: np.ndarray, generators: np.ndarray) -> np.ndarray:
-    """Information of a measurement ``H`` re-expressed for ``A H B`` (any ``B``).
-
-    A between factor holds ``Z = H^-1`` with noise ``Z exp(xi)`` (``sl4slam.backend.base``); for
-    ``A H B`` that is ``B^-1 Z A^-1 exp(Ad_A xi)``, so the covariance becomes ``Ad_A C Ad_A^T`` and the
-    information ``Ad_A^-T I Ad_A^-1``.
-    """
-    Ad_inv = np.linalg.inv(sl4_adjoint(A, generators))
-    moved = Ad_inv.T @ np.asarray(information, dtype=np.float64) @ Ad_inv
-    return 0.5 * (moved + moved.T)
 
 
 @dataclass
@@ -95,7 +75,7 @@ class KeyframeBackend(Backend):
     def __init__(self, config: BackendConfig) -> None:
         config.validate()
         self.config = config
-        self.nodes = SL4Backend(config)
+        self.nodes = SL4Backend(config, revisit_priors=config.revisit_priors)
         self._generators = self.nodes.generators()
         self._frame_information = np.eye(self.dim) / config.frame_sigma**2
         self._submaps: dict[int, _Submap] = {}
