@@ -11,7 +11,8 @@ Three parts, each a section of the report:
 - **cost**: the synthetic world (160x120) replayed lap after lap for ``--submaps`` submaps with each
   graph, each in its own process: per-submap milliseconds of the graph steps (``backend``: adding the
   submap and the iSAM2 update; ``loops``: verifying and adding loops) at submaps 10-20 and at the
-  last ten, graph size, process peak memory, the final polish and the ATE; the keyframe graph twice:
+  last ten, timed side by side (two replays of the same run advancing in turn, see :func:`cost_child`),
+  graph size, process peak memory, the final polish and the ATE; the keyframe graph twice:
   as configured (revisits of closed places held as priors in iSAM2) and with every loop in iSAM2;
 - **verification**: the attention loop check (the simulated frontend's true-overlap stand-in for
   VGGT's image-match ratio) at false-loop rates 0.1 and 0.3 (``--sim-false-loop-rate``): injected
@@ -34,15 +35,19 @@ for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import datetime  # noqa: E402
+import dataclasses  # noqa: E402
+import gc  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Callable, Iterator  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from sl4slam.backend import Backend, BackendUpdateError, make_backend  # noqa: E402
 from sl4slam.config import SLAMConfig, apply_sim_profile  # noqa: E402
 from sl4slam.frontend import make_frontend  # noqa: E402
 from sl4slam.io import open_source  # noqa: E402
@@ -168,14 +173,18 @@ def lap_config(design: str, profile: str, seed: int, **sim) -> SLAMConfig:
     return config
 
 
-def replay_laps(world: Path, config: SLAMConfig, submaps: int) -> SLAMPipeline:
-    """Feed the lap replay through the pipeline until ``submaps`` submaps are done."""
+def lap_replay(world: Path, config: SLAMConfig,
+               prepare: Callable[[SLAMPipeline], None] | None = None) -> Iterator[SLAMPipeline]:
+    """The lap replay through the pipeline, yielding the pipeline after each submap; ``prepare`` is
+    called on the pipeline before the first."""
     base = open_source(str(world))
     frames = {i: base.get(i) for i in range(len(base))}  # decoded once: the replay does not time PNG decoding
     base.get = frames.__getitem__  # type: ignore[method-assign]
     source = LapSource(base, laps=100_000)
     pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval, false_loops=config.sim))
     pipeline._source = source
+    if prepare is not None:
+        prepare(pipeline)
     pending: list[Frame] = []
     for frame in source:
         if pipeline._select(frame):
@@ -183,11 +192,18 @@ def replay_laps(world: Path, config: SLAMConfig, submaps: int) -> SLAMPipeline:
         if len(pending) == config.submap.size:
             pipeline.process_submap(pending)
             pending = []
-            if pipeline.num_submaps % 50 == 0:
-                print(f"  submap {pipeline.num_submaps}, loops {pipeline.num_loops}", flush=True)
-            if pipeline.num_submaps >= submaps:
-                break
-    return pipeline
+            yield pipeline
+
+
+def replay_laps(world: Path, config: SLAMConfig, submaps: int,
+                prepare: Callable[[SLAMPipeline], None] | None = None) -> SLAMPipeline:
+    """Feed the lap replay through the pipeline until ``submaps`` submaps are done."""
+    for pipeline in lap_replay(world, config, prepare):
+        if pipeline.num_submaps % 50 == 0:
+            print(f"  submap {pipeline.num_submaps}, loops {pipeline.num_loops}", file=sys.stderr, flush=True)
+        if pipeline.num_submaps >= submaps:
+            return pipeline
+    raise AssertionError("the lap replay is endless")
 
 
 COST_GRAPHS = {
@@ -198,64 +214,188 @@ COST_GRAPHS = {
 }
 
 
+EARLY = (10, 20)  # the issue's early window; the late one is the last ten submaps
+WINDOW = EARLY[1] - EARLY[0]
+
+
 def cost_child(work: Path, graph: str, profile: str, submaps: int) -> dict:
-    """One graph's lap replay (run in a process of its own, so the peak memory is its own)."""
+    """One graph's lap replay (run in a process of its own, so the peak memory is its own).
+
+    The early and the late submaps are timed side by side: one replay is run to ``submaps - WINDOW``
+    submaps, a second, identical replay (same seeds) to ``EARLY[0]``, and then the two advance in
+    turn, a submap each, so that both ends of the map are timed within the same seconds and the
+    machine's drift in speed over minutes cancels from the ratio. The heap built before that is
+    frozen (``gc.freeze``): a garbage collection that one replay triggers would otherwise walk the
+    other's objects too, at its expense."""
     design, exact = COST_GRAPHS[graph]
-    config = lap_config(design, profile, 0)
-    if exact:
-        config.backend.revisit_priors = False
-    pipeline = replay_laps(small_world(work), config, submaps)
+
+    def replay() -> Iterator[SLAMPipeline]:
+        config = lap_config(design, profile, 0)
+        if exact:
+            config.backend.revisit_priors = False
+        return lap_replay(small_world(work), config)
+
+    late_replay = replay()
+    for late in late_replay:
+        if late.num_submaps % 50 == 0:
+            print(f"  submap {late.num_submaps}, loops {late.num_loops}", file=sys.stderr, flush=True)
+        if late.num_submaps >= submaps - WINDOW:
+            break
+    early_replay = replay()
+    for early in early_replay:
+        if early.num_submaps >= EARLY[0]:
+            break
+    gc.collect()
+    gc.freeze()
+    for step in range(WINDOW):
+        for replay_ in (early_replay, late_replay) if step % 2 == 0 else (late_replay, early_replay):
+            next(replay_)
+    gc.unfreeze()
     start = time.perf_counter()
-    result = pipeline.result()
+    result = late.result()
     polish = time.perf_counter() - start
-    per = pipeline.submap_seconds
-    nodes = getattr(pipeline.backend, "num_nodes", pipeline.backend.num_submaps)
-    return {"backend": [s.get("backend", 0.0) for s in per], "loops": [s.get("loops", 0.0) for s in per],
-            "closed": list(pipeline.submap_loops), "nodes": nodes, "keyframes": len(pipeline.keyframes),
-            "segments": len(pipeline.backend.segments),
-            "failed_updates": sum(1 for e in pipeline.edges if e.reason and "could not be solved" in e.reason),
-            "loops_total": pipeline.num_loops, "polish": polish, "ate": compute_ate(result).rmse,
-            "revisits": getattr(getattr(pipeline.backend, "nodes", pipeline.backend), "num_revisit_priors", 0),
+
+    def window(pipeline: SLAMPipeline) -> dict:
+        per = pipeline.submap_seconds[-WINDOW:]
+        return {"backend": [s.get("backend", 0.0) for s in per], "loops": [s.get("loops", 0.0) for s in per],
+                "closed": list(pipeline.submap_loops[-WINDOW:])}
+
+    nodes = getattr(late.backend, "num_nodes", late.backend.num_submaps)
+    return {"early": window(early), "late": window(late), "nodes": nodes, "keyframes": len(late.keyframes),
+            "segments": len(late.backend.segments),
+            "failed_updates": sum(1 for e in late.edges if e.reason and "could not be solved" in e.reason),
+            "loops_total": late.num_loops, "polish": polish, "ate": compute_ate(result).rmse,
+            "revisits": getattr(getattr(late.backend, "nodes", late.backend), "num_revisit_priors", 0),
             **peak_memory()}
+
+
+BACKEND_CALLS = ("add_submap", "start_segment", "add_loop", "loop_chi2", "update")
+BACKEND_SETTINGS = {
+    # row: BackendConfig overrides
+    "as configured (relinearization check every 10th update and in loop iterations)": {},
+    "relinearization check at every update": {"relinearize_skip": 1},
+}
+BACKEND_REPEATS = 3
+
+
+def record_backend_calls(pipeline: SLAMPipeline) -> list[list[tuple]]:
+    """Record every graph call the pipeline makes, one list per submap (from its ``add_submap``)."""
+    per_submap: list[list[tuple]] = []
+    backend = pipeline.backend
+    for name in BACKEND_CALLS:
+        method = getattr(backend, name)
+
+        def recorded(*args, _method=method, _name=name, **kwargs):
+            if _name in ("add_submap", "start_segment"):
+                per_submap.append([])
+            per_submap[-1].append((_name, args, kwargs))
+            return _method(*args, **kwargs)
+
+        setattr(backend, name, recorded)
+    return per_submap
+
+
+def replay_calls(backend: Backend, calls: list[tuple]) -> float:
+    """Make one submap's recorded graph calls; returns their wall time in seconds."""
+    start = time.perf_counter()
+    for name, args, kwargs in calls:
+        try:
+            getattr(backend, name)(*args, **kwargs)
+        except BackendUpdateError:  # as in the run: the graph rolled the update back
+            pass
+    return time.perf_counter() - start
+
+
+def backend_child(work: Path, profile: str, submaps: int) -> dict:
+    """The keyframe graph's own work, without the pipeline around it: the graph calls of the lap
+    replay are recorded, then replayed into fresh graphs per setting, early and late side by side
+    (as in :func:`cost_child`), ``BACKEND_REPEATS`` times."""
+    config = lap_config("keyframe", profile, 0)
+    recorder: list[list[list[tuple]]] = []
+    replay_laps(small_world(work), config, submaps, prepare=lambda pipeline: recorder.append(record_backend_calls(pipeline)))
+    calls = recorder[0]
+    out = {}
+    for setting, overrides in BACKEND_SETTINGS.items():
+        backend_config = dataclasses.replace(config.backend, **overrides)
+        runs = []
+        for _ in range(BACKEND_REPEATS):
+            late, early = make_backend(backend_config), make_backend(backend_config)
+            for chunk in calls[:len(calls) - WINDOW]:
+                replay_calls(late, chunk)
+            for chunk in calls[:EARLY[0]]:
+                replay_calls(early, chunk)
+            gc.collect()
+            gc.freeze()
+            times = {"early": [], "late": []}
+            for step in range(WINDOW):
+                pair = (("early", early, calls[EARLY[0] + step]), ("late", late, calls[len(calls) - WINDOW + step]))
+                for end, backend, chunk in pair if step % 2 == 0 else pair[::-1]:
+                    times[end].append(replay_calls(backend, chunk))
+            gc.unfreeze()
+            runs.append(times)
+        out[setting] = runs
+    return out
+
+
+def backend_rows(data: dict) -> list[str]:
+    rows = []
+    for setting, runs in data.items():
+        early = [1000 * float(np.median(run["early"])) for run in runs]
+        late = [1000 * float(np.median(run["late"])) for run in runs]
+        ratios = [b / a for a, b in zip(early, late)]
+        rows.append(f"| {setting} | {np.median(early):.1f} | {np.median(late):.1f} | **{np.median(ratios):.2f}** | "
+                    f"{min(ratios):.2f}-{max(ratios):.2f} |")
+    return rows
 
 
 def cost(work: Path, profile: str, submaps: int) -> list[str]:
     small_world(work)
-    rows, ratios = [], []
+    rows = []
     for design in COST_GRAPHS:
         print(f"cost: {design} graph, {submaps} submaps", flush=True)
         out = subprocess.run([sys.executable, __file__, "--cost-child", design, "--profile", profile, "--submaps",
                               str(submaps), "--work", str(work)], check=True, capture_output=True, text=True)
         data = json.loads(out.stdout.strip().splitlines()[-1])
-        backend, loops = np.array(data["backend"]) * 1000, np.array(data["loops"]) * 1000
-        plain = np.array(data["closed"]) == 0
-        early, late = slice(10, 20), slice(len(backend) - 10, len(backend))
-        plain_idx = np.flatnonzero(plain)
-        plain_early, plain_late = plain_idx[(plain_idx >= 10) & (plain_idx < 40)][:10], plain_idx[-10:]
-        ratio = np.median(backend[late]) / np.median(backend[early])
-        graph_work = backend + loops  # everything the graph does per submap, the loop checks included
-        ratios.append((design, ratio, np.median(backend[plain_late]) / np.median(backend[plain_early]),
-                       np.median(graph_work[late]) / np.median(graph_work[early])))
-        rows.append(f"| {design} | {data['nodes']} | {np.median(backend[early]):.1f} | {np.median(backend[late]):.1f} | "
-                    f"{ratio:.2f} | {np.median(backend[plain_early]):.1f} | {np.median(backend[plain_late]):.1f} | "
-                    f"{np.median(loops[early]):.1f} | {np.median(loops[late]):.1f} | {data['loops_total']} | "
-                    f"{data['revisits']} | {data['polish'] * 1000:.0f} | {data['ate']:.4f} | {data['peak_rss_mib']:.0f} | "
+        ms = {end: {key: np.array(data[end][key]) * 1000 for key in ("backend", "loops")} for end in ("early", "late")}
+        for end in ms.values():
+            end["work"] = end["backend"] + end["loops"]  # everything the graph does per submap
+        median = {key: {end: float(np.median(ms[end][key])) for end in ms} for key in ("backend", "loops", "work")}
+        ratio = {key: value["late"] / value["early"] for key, value in median.items()}
+        rows.append(f"| {design} | {data['nodes']} | {median['backend']['early']:.1f} | {median['backend']['late']:.1f} | "
+                    f"**{ratio['backend']:.2f}** | {median['loops']['early']:.1f} | {median['loops']['late']:.1f} | "
+                    f"{ratio['loops']:.2f} | **{ratio['work']:.2f}** | {data['loops_total']} | {data['revisits']} | "
+                    f"{data['polish'] * 1000:.0f} | {data['ate']:.4f} | {data['peak_rss_mib']:.0f} | "
                     f"{data['segments']} | {data['failed_updates']} |")
     return [f"### Per-submap cost ({submaps} submaps, lap replay of the synthetic world at 160x120, {profile} profile, "
             "ORB retrieval)", "",
-            "Milliseconds per submap, medians over submaps 10-20 (early) and the last ten (late); *no-loop*: the "
-            "submaps that closed no loop, which is what every submap pays (ten of each). Peak memory: the process "
-            "running that graph alone (frames of the lap held decoded).", "",
+            f"Milliseconds per submap, medians over submaps {EARLY[0]}-{EARLY[1]} (early) and the last {WINDOW} "
+            "(late). The two ends are timed side by side: a second replay of the same run (same seeds) is brought to "
+            f"submap {EARLY[0]}, and then the two advance in turn, a submap each, so the machine's drift in speed "
+            "over minutes does not enter the ratios. Peak memory: the process running that graph (frames of the lap "
+            f"held decoded; the second replay adds {EARLY[1]} submaps).", "",
             "*backend*: adding the submap and its iSAM2 update; *loops*: verifying the loop candidates (the "
-            "chi-square against the map included), adding them and their iSAM2 update. *revisit priors*: loops "
-            "iSAM2 held as priors (`BackendConfig.revisit_priors`); the ATE (`evo_ape -as`, metres) is after the final "
-            "polish, which optimizes every loop exactly.", "",
-            "| graph | nodes | backend early | backend late | late / early | no-loop early | no-loop late | "
-            "loops early | loops late | loops closed | revisit priors | final polish (ms) | ATE | peak RSS (MiB) | "
-            "map segments | failed graph updates |",
+            "chi-square against the map included), adding them and their iSAM2 update; *all*: backend + loops. "
+            "*revisit priors*: loops iSAM2 held as priors (`BackendConfig.revisit_priors`); the ATE (`evo_ape -as`, "
+            "metres) is after the final polish, which optimizes every loop exactly.", "",
+            "| graph | nodes | backend early | backend late | backend late / early | loops early | loops late | "
+            "loops late / early | all late / early | loops closed | revisit priors | final polish (ms) | ATE | "
+            "peak RSS (MiB) | map segments | failed graph updates |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|", *rows, "",
-            "Late / early (backend, all submaps; backend, submaps that closed no loop; backend + loops, all submaps): "
-            + "; ".join(f"{d} {r:.2f}, {p:.2f}, {w:.2f}" for d, r, p, w in ratios) + ".", ""]
+            *backend_section(work, profile, submaps)]
+
+
+def backend_section(work: Path, profile: str, submaps: int) -> list[str]:
+    print(f"cost: the keyframe graph alone, {submaps} submaps", flush=True)
+    out = subprocess.run([sys.executable, __file__, "--backend-child", "--profile", profile, "--submaps", str(submaps),
+                          "--work", str(work)], check=True, capture_output=True, text=True)
+    data = json.loads(out.stdout.strip().splitlines()[-1])
+    return [f"**The keyframe graph alone.** The graph calls of the keyframe replay (adding each submap, the loop "
+            f"chi-squares, the loops, the iSAM2 updates) recorded and made again into fresh graphs, without the "
+            f"pipeline's own per-submap work (alignment, loop evidence, verification), early and late side by side "
+            f"as above, {BACKEND_REPEATS} times per setting: milliseconds per submap (medians over the window, then "
+            f"over the repeats) and the range of the ratio.", "",
+            "| iSAM2 setting | early | late | late / early | range |", "|---|---|---|---|---|",
+            *backend_rows(data), ""]
 
 
 # ---------------------------------------------------------------------------- verification
@@ -311,11 +451,15 @@ def main() -> None:
     parser.add_argument("--work", default=str(HERE / "out" / "keyframe_graph"))
     parser.add_argument("--out", default=str(HERE / "results" / "keyframe_graph.md"))
     parser.add_argument("--cost-child", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--backend-child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     if args.cost_child:
         print(json.dumps(cost_child(work, args.cost_child, args.profile, args.submaps)))
+        return
+    if args.backend_child:
+        print(json.dumps(backend_child(work, args.profile, args.submaps)))
         return
     start = time.perf_counter()
     load = os.getloadavg()[0]

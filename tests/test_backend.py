@@ -463,6 +463,7 @@ def test_pure_odometry_update_does_not_iterate():
 def test_make_backend_checks_config():
     assert isinstance(make_backend(BackendConfig(kind="sim3")), Sim3Backend)
     assert isinstance(make_backend(BackendConfig()), Backend)
-    for bad in (dict(kind="se3"), dict(loop_kernel="tukey"), dict(sigma=0.0), dict(loop_kernel_width=-1.0)):
+    for bad in (dict(kind="se3"), dict(loop_kernel="tukey"), dict(sigma=0.0), dict(loop_kernel_width=-1.0),
+                dict(relinearize_skip=0)):
         with pytest.raises(UserError):
             make_backend(dataclasses.replace(BackendConfig(), **bad))

@@ -302,7 +302,7 @@ class BackendConfig(Section):
         "weighting": ("evidence", "fixed")}
     advanced: ClassVar[frozenset[str]] = frozenset({
         "prior_sigma", "loop_kernel", "loop_kernel_width", "effective_points", "min_sigma", "max_sigma",
-        "segment_sigma", "relinearize_threshold", "wildfire_threshold", "loop_step_threshold",
+        "segment_sigma", "relinearize_threshold", "relinearize_skip", "wildfire_threshold", "loop_step_threshold",
         "max_loop_iterations", "frame_sigma", "revisit_priors"})
 
     kind: str = "sl4"
@@ -362,6 +362,11 @@ class BackendConfig(Section):
     relinearize_threshold: float = 1e-2
     """iSAM2 relinearizes a variable whose tangent step exceeds this (a fifth of the default sigma;
     GTSAM's default 0.1 leaves loops half-absorbed; benchmarks/bench_backend.py)."""
+    relinearize_skip: int = 10
+    """iSAM2 checks for variables to relinearize at every this many updates (GTSAM's default), and
+    at every iteration after a loop. The check and the search for the cliques it touches walk the
+    whole map: checked at every update, the keyframe graph's own work per submap grew 1.42x over
+    300 submaps instead of 1.26x, with the same final ATE (benchmarks/results/keyframe_graph.md)."""
     wildfire_threshold: float = 1e-9
     """iSAM2 stops back-substitution below this change of the step; small, so that one node's
     estimate agrees with the full estimate after a loop."""
@@ -375,7 +380,7 @@ class BackendConfig(Section):
     place) reaches iSAM2 as a prior on its newer node, the older held at its estimate; the final
     polish at the end of a run optimizes every loop between its two nodes. Keeps the cost of a loop
     update flat in a map that revisits its places lap after lap (whose cliques otherwise grow with
-    the laps: 3.4x slower per submap after 17 laps without it; benchmarks/results/keyframe_graph.md)."""
+    the laps: 3.5-3.9x slower per submap after 17 laps without it; benchmarks/results/keyframe_graph.md)."""
 
     def validate(self) -> None:
         super().validate()
@@ -389,6 +394,7 @@ class BackendConfig(Section):
                       f"at most 1000 times --backend-min-sigma ({1000 * self.min_sigma})")
         self._require("wildfire_threshold", self.wildfire_threshold >= 0, ">= 0")
         self._require("max_loop_iterations", self.max_loop_iterations >= 0, ">= 0")
+        self._require("relinearize_skip", self.relinearize_skip >= 1, "at least 1")
         self._require("frame_sigma", self.frame_sigma <= 1000 * self.min_sigma,
                       f"at most 1000 times --backend-min-sigma ({1000 * self.min_sigma})")
         self._require("graph", self.graph != "keyframe" or self.kind == "sl4",

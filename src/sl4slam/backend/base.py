@@ -40,7 +40,10 @@ older node to the root, and relinearize every variable whose step exceeds the th
 follow the loop's span. Two thresholds keep that work small (``BackendConfig``): variables are
 relinearized once their step exceeds ``relinearize_threshold`` (1e-2), and after a loop iSAM2
 iterates only while some step exceeds ``loop_step_threshold`` (5e-2), i.e. when the loop
-corrects real drift. The estimate then sits within about 1e-4
+corrects real drift. The check for variables to relinearize reads every node, so it runs at
+every ``relinearize_skip``-th update and at each of those loop iterations, not at every odometry
+step. (One O(map) walk per update remains inside GTSAM: the temporary tree of a re-elimination
+visits the whole tree below it when it is freed: about 0.7 ms per update at 5000 nodes.) The estimate then sits within about 1e-4
 (relative) of the optimal graph error; :meth:`FactorGraphBackend.final_estimates` removes that
 once, at the end of a run, with a batch Gauss-Newton polish of the whole graph. (GTSAM's SL(4)
 chart is first-order, so near the optimum the graph error is flat to about 1e-5 relative and
@@ -48,12 +51,12 @@ solutions differ by ~1e-4 in their entries: beyond that, "converged" has no mean
 
 Revisits. A map that goes round the same places lap after lap, each lap tied to the others by
 loops, is a grid: its Bayes tree cliques widen with every lap, and so does the cost of each loop
-update (3.4x slower per submap after 17 laps of the synthetic world; benchmarks/results/
+update (3.5-3.9x slower per submap after 17 laps of the synthetic world; benchmarks/results/
 keyframe_graph.md). So iSAM2 takes a loop as a between factor only when its older node is not yet
 on a cycle that an earlier loop closed; a loop to a place that is (a revisit) reaches iSAM2 as a
 prior on the newer node at the older node's current estimate (the keyframe graph's
 ``BackendConfig.revisit_priors``; the submap graph, a few hundred nodes where the keyframe graph
-has thousands, stayed flat without it: 0.96 late / early after 17 laps).
+has thousands, stays within 1.1-1.2 late / early after 17 laps without it).
 iSAM2's graph then stays a chain with one loop per closed stretch and unary factors, whatever the
 laps. Every loop is kept exactly in :meth:`FactorGraphBackend.factor_graph`, which the final
 polish optimizes, so the map a run ends with is the exact graph's optimum.
@@ -310,7 +313,7 @@ class FactorGraphBackend(Backend):
     def _new_isam(self) -> gtsam.ISAM2:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
-        params.relinearizeSkip = 1
+        params.relinearizeSkip = self.config.relinearize_skip
         gauss_newton_params = gtsam.ISAM2GaussNewtonParams()
         gauss_newton_params.setWildfireThreshold(self.config.wildfire_threshold)
         params.setOptimizationParams(gauss_newton_params)
@@ -534,9 +537,10 @@ class FactorGraphBackend(Backend):
             # what the loop iterations watch: the whole map after a loop that closes a cycle, only the
             # nodes that revisit priors pull on when there are none of those
             loop_keys = "all" if self._pending_spans else self._pending_loop_keys
-            # Loops move the map: keep the point iSAM2 last solved at, so that a failure rebuilds the
-            # graph from there (a copy: about 1 ms at 5000 nodes). An odometry step leaves it as it was.
-            before = gtsam.Values(self._isam.getLinearizationPoint()) if loop_keys else None
+            # A loop that closes a cycle can move the whole map: keep the point iSAM2 last solved at, so
+            # that a failure rebuilds the graph from there (an O(map) copy, 2 ms at 5000 nodes). A revisit
+            # prior moves little: a failure starts from the failed iSAM2's own point (see _roll_back).
+            before = gtsam.Values(self._isam.getLinearizationPoint()) if loop_keys == "all" else None
             try:
                 iterations = self._solve(factors, values, loop_keys)
             except RuntimeError as exc:  # GTSAM's IndeterminateSystemException and relatives
