@@ -195,15 +195,20 @@ def lap_replay(world: Path, config: SLAMConfig,
             yield pipeline
 
 
-def replay_laps(world: Path, config: SLAMConfig, submaps: int,
-                prepare: Callable[[SLAMPipeline], None] | None = None) -> SLAMPipeline:
-    """Feed the lap replay through the pipeline until ``submaps`` submaps are done."""
-    for pipeline in lap_replay(world, config, prepare):
+def advance_to(replay: Iterator[SLAMPipeline], submaps: int) -> SLAMPipeline:
+    """Advance a :func:`lap_replay` until ``submaps`` submaps are done."""
+    for pipeline in replay:
         if pipeline.num_submaps % 50 == 0:
             print(f"  submap {pipeline.num_submaps}, loops {pipeline.num_loops}", file=sys.stderr, flush=True)
         if pipeline.num_submaps >= submaps:
             return pipeline
     raise AssertionError("the lap replay is endless")
+
+
+def replay_laps(world: Path, config: SLAMConfig, submaps: int,
+                prepare: Callable[[SLAMPipeline], None] | None = None) -> SLAMPipeline:
+    """Feed the lap replay through the pipeline until ``submaps`` submaps are done."""
+    return advance_to(lap_replay(world, config, prepare), submaps)
 
 
 COST_GRAPHS = {
@@ -218,15 +223,27 @@ EARLY = (10, 20)  # the issue's early window; the late one is the last ten subma
 WINDOW = EARLY[1] - EARLY[0]
 
 
+def side_by_side(advance_early: Callable[[], None], advance_late: Callable[[], None]) -> None:
+    """Advance the early and the late end in turn, ``WINDOW`` steps each, with the heap built so far
+    frozen (``gc.freeze``): a garbage collection that one end triggers would otherwise walk the
+    other's objects too, at its expense."""
+    gc.collect()
+    gc.freeze()
+    try:
+        for step in range(WINDOW):
+            for advance in (advance_early, advance_late) if step % 2 == 0 else (advance_late, advance_early):
+                advance()
+    finally:
+        gc.unfreeze()
+
+
 def cost_child(work: Path, graph: str, profile: str, submaps: int) -> dict:
     """One graph's lap replay (run in a process of its own, so the peak memory is its own).
 
     The early and the late submaps are timed side by side: one replay is run to ``submaps - WINDOW``
     submaps, a second, identical replay (same seeds) to ``EARLY[0]``, and then the two advance in
-    turn, a submap each, so that both ends of the map are timed within the same seconds and the
-    machine's drift in speed over minutes cancels from the ratio. The heap built before that is
-    frozen (``gc.freeze``): a garbage collection that one replay triggers would otherwise walk the
-    other's objects too, at its expense."""
+    turn, a submap each (:func:`side_by_side`), so that both ends of the map are timed within the
+    same seconds and the machine's drift in speed over minutes cancels from the ratio."""
     design, exact = COST_GRAPHS[graph]
 
     def replay() -> Iterator[SLAMPipeline]:
@@ -235,22 +252,9 @@ def cost_child(work: Path, graph: str, profile: str, submaps: int) -> dict:
             config.backend.revisit_priors = False
         return lap_replay(small_world(work), config)
 
-    late_replay = replay()
-    for late in late_replay:
-        if late.num_submaps % 50 == 0:
-            print(f"  submap {late.num_submaps}, loops {late.num_loops}", file=sys.stderr, flush=True)
-        if late.num_submaps >= submaps - WINDOW:
-            break
-    early_replay = replay()
-    for early in early_replay:
-        if early.num_submaps >= EARLY[0]:
-            break
-    gc.collect()
-    gc.freeze()
-    for step in range(WINDOW):
-        for replay_ in (early_replay, late_replay) if step % 2 == 0 else (late_replay, early_replay):
-            next(replay_)
-    gc.unfreeze()
+    late_replay, early_replay = replay(), replay()
+    late, early = advance_to(late_replay, submaps - WINDOW), advance_to(early_replay, EARLY[0])
+    side_by_side(lambda: next(early_replay), lambda: next(late_replay))
     start = time.perf_counter()
     result = late.result()
     polish = time.perf_counter() - start
@@ -319,19 +323,17 @@ def backend_child(work: Path, profile: str, submaps: int) -> dict:
         backend_config = dataclasses.replace(config.backend, **overrides)
         runs = []
         for _ in range(BACKEND_REPEATS):
-            late, early = make_backend(backend_config), make_backend(backend_config)
-            for chunk in calls[:len(calls) - WINDOW]:
-                replay_calls(late, chunk)
-            for chunk in calls[:EARLY[0]]:
-                replay_calls(early, chunk)
-            gc.collect()
-            gc.freeze()
-            times = {"early": [], "late": []}
-            for step in range(WINDOW):
-                pair = (("early", early, calls[EARLY[0] + step]), ("late", late, calls[len(calls) - WINDOW + step]))
-                for end, backend, chunk in pair if step % 2 == 0 else pair[::-1]:
-                    times[end].append(replay_calls(backend, chunk))
-            gc.unfreeze()
+            graphs = {"early": make_backend(backend_config), "late": make_backend(backend_config)}
+            for end, start in (("late", len(calls) - WINDOW), ("early", EARLY[0])):
+                for chunk in calls[:start]:
+                    replay_calls(graphs[end], chunk)
+            windows = {"early": iter(calls[EARLY[0]:EARLY[1]]), "late": iter(calls[len(calls) - WINDOW:])}
+            times: dict[str, list[float]] = {"early": [], "late": []}
+
+            def advance(end: str) -> None:
+                times[end].append(replay_calls(graphs[end], next(windows[end])))
+
+            side_by_side(lambda: advance("early"), lambda: advance("late"))
             runs.append(times)
         out[setting] = runs
     return out

@@ -43,9 +43,10 @@ iterates only while some step exceeds ``loop_step_threshold`` (5e-2), i.e. when 
 corrects real drift. The check for variables to relinearize reads every node, so it runs at
 every ``relinearize_skip``-th update and at each of those loop iterations, not at every odometry
 step. (One O(map) walk per update remains inside GTSAM: the temporary tree of a re-elimination
-visits the whole tree below it when it is freed: about 0.7 ms per update at 5000 nodes.) The estimate then sits within about 1e-4
-(relative) of the optimal graph error; :meth:`FactorGraphBackend.final_estimates` removes that
-once, at the end of a run, with a batch Gauss-Newton polish of the whole graph. (GTSAM's SL(4)
+visits the whole tree below it when it is freed: about 0.7 ms per update at 5000 nodes.) The
+estimate then sits within about 1e-4 (relative) of the optimal graph error;
+:meth:`FactorGraphBackend.final_estimates` removes that once, at the end of a run, with a batch
+Gauss-Newton polish of the whole graph. (GTSAM's SL(4)
 chart is first-order, so near the optimum the graph error is flat to about 1e-5 relative and
 solutions differ by ~1e-4 in their entries: beyond that, "converged" has no meaning.)
 
