@@ -18,11 +18,9 @@ import time
 from pathlib import Path
 
 from sl4slam.config import SLAMConfig
-from sl4slam.frontend import make_frontend
 from sl4slam.io import open_source
-from sl4slam.outputs import compute_ate
+from sl4slam.result.outputs import compute_ate
 from sl4slam.pipeline import SLAMPipeline
-from sl4slam.retrieval import make_retrieval
 from sl4slam.synthetic import write_synthetic_sequence
 
 from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
@@ -45,7 +43,7 @@ def run(world: Path, distortion: str, backend: str, loops: bool, seed: int) -> t
     config.backend.graph = "submap"  # SL(4) against Sim(3) in VGGT-SLAM's graph: per-submap distortion
     config.retrieval.kind = "orb" if loops else "none"
     start = time.perf_counter()
-    pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+    pipeline = SLAMPipeline(config)
     result = pipeline.run(open_source(str(world)), progress=False)
     return compute_ate(result).rmse, result.stats["loops"], result.stats["fallbacks"], time.perf_counter() - start
 

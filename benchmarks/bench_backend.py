@@ -86,7 +86,7 @@ def loop_update_time(kind: str, num_submaps: int, seed: int) -> tuple[float, int
     backend.add_loop(0, last, np.linalg.inv(truth[0]) @ truth[last])
     start = time.perf_counter()
     backend.update()
-    return time.perf_counter() - start, backend.last_update_iterations
+    return time.perf_counter() - start, backend.graph.last_update_iterations
 
 
 def final_polish(kind: str, num_submaps: int, seed: int) -> tuple[float, float, float]:
@@ -105,17 +105,17 @@ def final_polish(kind: str, num_submaps: int, seed: int) -> tuple[float, float, 
     last = num_submaps - 1
     backend.add_loop(0, last, np.linalg.inv(truth[0]) @ truth[last])
     backend.update()
-    incremental = backend.estimates()
+    incremental = backend.world_estimate().H_world_submap
     start = time.perf_counter()
-    final = backend.final_estimates()
+    final = backend.world_estimate(final=True).H_world_submap
     seconds = time.perf_counter() - start
     params = gtsam.LevenbergMarquardtParams()
     params.setRelativeErrorTol(1e-14)
     params.setAbsoluteErrorTol(1e-15)
     params.setMaxIterations(100)
-    batch = gtsam.LevenbergMarquardtOptimizer(backend.factor_graph(), backend.gtsam_values(), params).optimize()
+    batch = gtsam.LevenbergMarquardtOptimizer(backend.graph.factor_graph(), backend.graph._isam.calculateBestEstimate(), params).optimize()
     change = max(float(np.abs(final[k] - incremental[k]).max()) for k in final)
-    gap = max(float(np.abs(final[k] - backend._from_gtsam(backend._at(batch, backend.key(k)))).max()) for k in final)
+    gap = max(float(np.abs(final[k] - backend.graph._from_gtsam(backend.graph._at(batch, backend.graph.key(k)))).max()) for k in final)
     return seconds, change, gap
 
 

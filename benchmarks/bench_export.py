@@ -27,7 +27,7 @@ sys.path.insert(0, str(HERE.parent / "tests"))
 from result_folders import write_known_result  # noqa: E402
 
 from sl4slam.export import export_colmap, export_nerfstudio, export_submap_ply  # noqa: E402
-from sl4slam.results import load_result  # noqa: E402
+from sl4slam.result.reading import load_result  # noqa: E402
 
 RESULTS = HERE / "results" / "export.md"
 

@@ -49,11 +49,9 @@ import numpy as np  # noqa: E402
 
 from sl4slam.backend import Backend, BackendUpdateError, make_backend  # noqa: E402
 from sl4slam.config import SLAMConfig, apply_sim_profile  # noqa: E402
-from sl4slam.frontend import make_frontend  # noqa: E402
 from sl4slam.io import open_source  # noqa: E402
-from sl4slam.outputs import compute_ate, peak_memory  # noqa: E402
+from sl4slam.result.outputs import compute_ate, peak_memory  # noqa: E402
 from sl4slam.pipeline import SLAMPipeline  # noqa: E402
-from sl4slam.retrieval import make_retrieval  # noqa: E402
 from sl4slam.synthetic import write_synthetic_sequence  # noqa: E402
 from sl4slam.types import Frame  # noqa: E402
 
@@ -112,7 +110,7 @@ def worlds(work: Path, names: list[str]) -> dict[str, Path]:
 def accuracy_run(world: Path, design: str, profile: str, seed: int, perspective: float | None = None) -> dict:
     config = design_config(design, profile, seed, perspective=perspective)
     start = time.perf_counter()
-    pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+    pipeline = SLAMPipeline(config)
     result = pipeline.run(open_source(str(world)), progress=False)
     edges = result.edges
     planar = [e for e in edges if e.kind == "odometry" and e.accepted and e.fallback
@@ -181,7 +179,7 @@ def lap_replay(world: Path, config: SLAMConfig,
     frames = {i: base.get(i) for i in range(len(base))}  # decoded once: the replay does not time PNG decoding
     base.get = frames.__getitem__  # type: ignore[method-assign]
     source = LapSource(base, laps=100_000)
-    pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval, false_loops=config.sim))
+    pipeline = SLAMPipeline(config)
     pipeline._source = source
     if prepare is not None:
         prepare(pipeline)

@@ -23,11 +23,9 @@ import time
 from pathlib import Path
 
 from sl4slam.config import SLAMConfig
-from sl4slam.frontend import make_frontend
 from sl4slam.io import open_source
 from sl4slam.localize import localize_frames, split_ate, views_from_pipeline
 from sl4slam.pipeline import SLAMPipeline
-from sl4slam.retrieval import make_retrieval
 from sl4slam.synthetic import write_synthetic_sequence
 
 HERE = Path(__file__).resolve().parent
@@ -43,7 +41,7 @@ def measure(name: str, path: Path, tau_disparity: float, submap_size: int, retri
     config.sim.perspective = 0.1
     config.backend.graph = "submap"  # the graph the recorded figures were measured on
     source = open_source(str(path))
-    pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+    pipeline = SLAMPipeline(config)
     result = pipeline.run(source, progress=False)
     start = time.perf_counter()
     poses = localize_frames(source, views_from_pipeline(result))

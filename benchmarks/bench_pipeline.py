@@ -23,10 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from sl4slam.config import SLAMConfig
-from sl4slam.frontend import make_frontend
 from sl4slam.io import open_source
 from sl4slam.pipeline import SLAMPipeline
-from sl4slam.retrieval import make_retrieval
 from sl4slam.synthetic import write_synthetic_sequence
 from sl4slam.types import Frame
 
@@ -79,7 +77,7 @@ def main() -> None:
     config.sim.distort_first_submap = False
     config.backend.graph = "submap"  # the graph the recorded figures were measured on
     source = LapSource(base, laps=10_000)
-    pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+    pipeline = SLAMPipeline(config)
     keyframe_seconds: list[float] = []
     pipeline._source = source
     pending: list[Frame] = []

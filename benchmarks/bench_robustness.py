@@ -29,11 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from sl4slam.config import SLAMConfig, apply_sim_profile
-from sl4slam.frontend import make_frontend
 from sl4slam.io import open_source
-from sl4slam.outputs import compute_ate
+from sl4slam.result.outputs import compute_ate
 from sl4slam.pipeline import SLAMPipeline
-from sl4slam.retrieval import make_retrieval
 from sl4slam.synthetic import write_synthetic_sequence
 
 from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
@@ -61,7 +59,7 @@ def run(world: Path, profile: str, graph: str, loops: bool, seed: int, rate: flo
     if world == WORLD:
         config.keyframes.tau_disparity = WORLD_TAU_DISPARITY
     start = time.perf_counter()
-    pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval, false_loops=config.sim))
+    pipeline = SLAMPipeline(config)
     try:
         result = pipeline.run(open_source(str(world)), progress=False)
     except Exception as exc:  # a run that aborts is a finding, not a crash of the benchmark

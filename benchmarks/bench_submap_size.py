@@ -25,11 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from sl4slam.config import SimulatorConfig, SLAMConfig
-from sl4slam.frontend import make_frontend
 from sl4slam.io import open_source
-from sl4slam.outputs import compute_ate
+from sl4slam.result.outputs import compute_ate
 from sl4slam.pipeline import SLAMPipeline
-from sl4slam.retrieval import make_retrieval
 from sl4slam.synthetic import write_synthetic_sequence
 
 from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
@@ -59,7 +57,7 @@ def run(world: Path, profile: str, size: int, loops: bool, seed: int, graph: str
     config.retrieval.kind = "orb" if loops else "none"
     start = time.perf_counter()
     try:
-        pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+        pipeline = SLAMPipeline(config)
         result = pipeline.run(open_source(str(world)), progress=False)
         ate = compute_ate(result).rmse
     except Exception as exc:  # reported, not hidden: the table says which step failed and why

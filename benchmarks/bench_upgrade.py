@@ -39,13 +39,18 @@ from sl4slam.geometry import apply_transform, decompose_projection, normalize_sl
 from sl4slam.io import read_tum_trajectory
 from sl4slam.synthetic.correspondences import near_identity_sl4
 from sl4slam.synthetic.world import camera_path
-from sl4slam.upgrade import estimate_metric_upgrade, upgrade_cameras
+from sl4slam.upgrade import estimate_metric_upgrade
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "upgrade.md"
 FOCAL, WIDTH, HEIGHT = 500.0, 640, 480
 PP = np.array([(WIDTH - 1) / 2.0, (HEIGHT - 1) / 2.0])
 SUBMAP = 16
+
+
+def upgrade_cameras(P_world: np.ndarray, H_metric_world: np.ndarray) -> np.ndarray:
+    """Cameras in the metric frame: ``P H^-1``."""
+    return P_world @ np.linalg.inv(H_metric_world)
 
 
 # ------------------------------------------------------------------------------ problems
@@ -305,11 +310,9 @@ def bench_conditioning(seeds: int, tum: Path | None) -> list[str]:
 
 def bench_pipeline(tum: Path | None) -> list[str]:
     """Whole runs with the simulated frontend: keyframe ATE without / with the upgrade."""
-    from sl4slam.frontend import make_frontend
     from sl4slam.io import open_source
     from sl4slam.metrics import ate
     from sl4slam.pipeline import SLAMPipeline, world_cameras
-    from sl4slam.retrieval import make_retrieval
     from sl4slam.config import SLAMConfig
     from sl4slam.synthetic import write_synthetic_sequence
 
@@ -328,7 +331,7 @@ def bench_pipeline(tum: Path | None) -> list[str]:
             config.sim.distort_first_submap = distort_first
             config.backend.graph = "submap"  # the graph the recorded figures were measured on
             config.retrieval.kind = retrieval
-            pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+            pipeline = SLAMPipeline(config)
             result = pipeline.run(open_source(str(path)), progress=False)
             P = world_cameras(result.keyframes, result.H_world_submap)
             upgrade = estimate_metric_upgrade(P, pp, config.upgrade)

@@ -26,11 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from sl4slam.config import SLAMConfig, apply_sim_profile
-from sl4slam.frontend import make_frontend
 from sl4slam.io import open_source
-from sl4slam.outputs import compute_ate
+from sl4slam.result.outputs import compute_ate
 from sl4slam.pipeline import SLAMPipeline
-from sl4slam.retrieval import make_retrieval
 from sl4slam.synthetic import write_synthetic_sequence
 
 from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
@@ -62,7 +60,7 @@ def run(world: Path, setting: str, graph: str, seed: int) -> dict:
     if world.name.startswith("synthetic_"):
         config.keyframes.tau_disparity = WORLD_SIZES[world.name.removeprefix("synthetic_")]
     start = time.perf_counter()
-    pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+    pipeline = SLAMPipeline(config)
     try:
         upgraded = pipeline.run(open_source(str(world)), progress=False)
     except Exception as exc:  # a run that aborts is a finding, not a crash of the benchmark
@@ -71,7 +69,7 @@ def run(world: Path, setting: str, graph: str, seed: int) -> dict:
     if completed:
         # the upgrade also completed planar links, which changed the graph: "without" is a run without both
         config.upgrade.mode = "off"
-        off = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+        off = SLAMPipeline(config)
         plain = off.run(open_source(str(world)), progress=False)
     else:
         plain = pipeline._result(pipeline.backend.world_estimate(final=True))  # the same polished graph, not upgraded

@@ -27,30 +27,47 @@ def known_cameras(count: int, seed: int = 0) -> np.ndarray:
 
 def write_known_result(folder: Path, count: int = 6, width: int = 48, height: int = 36, skew: float = 0.0,
                        submap_size: int = 3, version: int = 1, confidence: bool = False, keyframes: bool = True,
-                       seed: int = 0, loops: list | None = None) -> dict:
+                       seed: int = 0, loops: list | None = None, scene: str = "noise") -> dict:
     """A result folder whose cameras and points are exactly known; returns the truth.
 
-    Each keyframe sees a depth map of 2-4 m through ``K`` (``skew`` in K[0, 1]); its world points
-    are exact unprojections, so they project back onto their pixels.
+    ``scene="noise"``: each keyframe sees a depth map of 2-4 m drawn independently per pixel through
+    ``K`` (``skew`` in K[0, 1]; focal length about 40 px whatever the width), with colours that are
+    a pattern in the image. ``scene="room"``: the keyframes look into a room with a desk
+    (:func:`room_view`: the depth of the surfaces each pixel sees, with 0.2 % noise, colours painted
+    on the surfaces so that all views agree) through a focal length of 0.8 image widths: the points
+    lie on surfaces, as the dense map of a run does. Either way a keyframe's world points are exact
+    unprojections of its depth, so they project back onto their pixels.
     """
+    if scene not in ("noise", "room"):
+        raise ValueError(f"scene must be 'noise' or 'room', got {scene!r}")
     rng = np.random.default_rng(seed)
     folder.mkdir(parents=True, exist_ok=True)
     T = known_cameras(count, seed)
-    K = np.array([[40.0, skew, (width - 1) / 2 + 0.7], [0.0, 42.0, (height - 1) / 2 - 0.4], [0.0, 0.0, 1.0]])
+    if scene == "room":
+        f = 0.8 * width
+        K = np.array([[f, skew, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    else:
+        K = np.array([[40.0, skew, (width - 1) / 2 + 0.7], [0.0, 42.0, (height - 1) / 2 - 0.4], [0.0, 0.0, 1.0]])
     frame_indices = np.arange(count) * 3
     timestamps = frame_indices / 30.0
     truth = {"T_world_cam": T, "K": K, "frame_indices": frame_indices, "points": {}, "masks": {}}
     if keyframes:
         (folder / "keyframes").mkdir(exist_ok=True)
     for i in range(count):
-        depth = rng.uniform(2.0, 4.0, (1, height, width))
+        if scene == "room":
+            depth, colors = room_view(T[i], K, width, height)
+            depth = (depth * (1.0 + 0.002 * rng.standard_normal(depth.shape)))[None]
+        else:
+            depth = rng.uniform(2.0, 4.0, (1, height, width))
         T_cam_world = np.linalg.inv(T[i])
         points = unproject_depth(depth, K[None], T_cam_world[None])[0]
         mask = rng.random((height, width)) > 0.2
         points[~mask] = 0.0
-        v, u = np.mgrid[0:height, 0:width]
-        colors = np.stack([128 + 100 * np.sin(u / 7.0 + i), 128 + 100 * np.cos(v / 5.0 - i), 128 + 60 * np.sin((u + v) / 11.0)],
-                          axis=-1).astype(np.uint8)  # smooth, like a photograph (and as costly to encode)
+        if scene != "room":
+            v, u = np.mgrid[0:height, 0:width]
+            colors = np.stack([128 + 100 * np.sin(u / 7.0 + i), 128 + 100 * np.cos(v / 5.0 - i),
+                               128 + 60 * np.sin((u + v) / 11.0)],
+                              axis=-1).astype(np.uint8)  # smooth, like a photograph (and as costly to encode)
         truth["points"][int(frame_indices[i])], truth["masks"][int(frame_indices[i])] = points, mask
         if keyframes:
             extra = {"confidence": rng.uniform(1, 10, (height, width)).astype(np.float16)} if confidence else {}
@@ -66,6 +83,38 @@ def write_known_result(folder: Path, count: int = 6, width: int = 48, height: in
         write_tum_trajectory(folder / "trajectory_gt.txt", timestamps, T)
     (folder / "summary.json").write_text(json.dumps(summary))
     return truth
+
+
+ROOM = (np.array([-3.5, -1.8, -4.0]), np.array([3.5, 1.0, 3.5]))
+"""The room of ``scene="room"``: an axis-aligned box (world y points down, floor at y = 1)."""
+DESK = (np.array([-0.9, 0.25, -0.5]), np.array([0.9, 1.0, 0.5]))
+"""A desk standing on the floor in the middle of the room (its top 0.75 m above the floor)."""
+
+
+def room_view(T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """What a camera inside :data:`ROOM` sees: depth ``(H, W)`` along its z axis of the nearest
+    surface (walls, floor, ceiling, desk) and colours ``(H, W, 3)`` uint8 painted on those
+    surfaces (a checkered floor, striped walls, a dark desk; mid tones, none near white)."""
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T  # camera z = 1
+    d = rays.reshape(-1, 3) @ T_world_cam[:3, :3].T
+    C = T_world_cam[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lo, hi = (ROOM[0] - C) / d, (ROOM[1] - C) / d
+        t = np.where(d > 0, hi, np.where(d < 0, lo, np.inf)).min(axis=1)  # leaving the room (the camera is in it)
+        near = np.minimum((DESK[0] - C) / d, (DESK[1] - C) / d).max(axis=1)
+        far = np.maximum((DESK[0] - C) / d, (DESK[1] - C) / d).min(axis=1)
+    on_desk = (near <= far) & (near > 0) & (near < t)
+    t = np.where(on_desk, near, t)
+    X = C + t[:, None] * d
+    x, y, z = X.T
+    floor = np.abs(y - ROOM[1][1]) < 1e-6
+    checker = (np.floor(x / 0.5) + np.floor(z / 0.5)) % 2
+    wall = 0.5 + 0.5 * np.sin(2.0 * (x + z)) * np.cos(3.0 * y)
+    colors = np.where(floor[:, None], np.array([150.0, 110, 70]) + 40 * checker[:, None],
+                      np.array([90.0, 120, 160]) + 60 * wall[:, None] * np.array([1.0, 0.6, -0.3]))
+    colors = np.where(on_desk[:, None], np.array([70.0, 45, 30]) + 25 * np.sin(8 * x + 5 * z)[:, None], colors)
+    return t.reshape(height, width), np.clip(colors, 0, 255).astype(np.uint8).reshape(height, width, 3)
 
 
 def run_small_world(root: Path, frames: int = 120, perspective: float = 0.1, retrieval: str = "none") -> Path:

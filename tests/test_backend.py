@@ -10,7 +10,7 @@ import pytest
 from scipy.linalg import expm, logm
 from scipy.spatial.transform import Rotation
 
-from sl4slam.backend import Backend, BackendUpdateError, Sim3Backend, SL4Backend, make_backend
+from sl4slam.backend import Backend, BackendUpdateError, Sim3Backend, SL4Backend, SL4PoseGraph, SubmapBackend, make_backend
 from sl4slam.config import BackendConfig
 from sl4slam.errors import UserError
 
@@ -78,7 +78,7 @@ def run(backend: Backend, odometry: list[np.ndarray], loops: list[tuple[int, int
             if max(i, j) == k:
                 backend.add_loop(i, j, H_i_j)
         backend.update()
-    return backend.estimates()
+    return backend.world_estimate().H_world_submap
 
 
 def map_error(estimates: dict[int, np.ndarray], truth: list[np.ndarray]) -> float:
@@ -105,10 +105,10 @@ def test_sl4_factor_residual_is_the_papers():
     delta *= 1e-3 / np.linalg.norm(delta)
     H_world_j = H_world_i @ sl4_exp(delta) @ H_i_j  # so that Log(E) = delta
     values = gtsam.Values()
-    values.insert(backend.key(3), gtsam.SL4(H_world_i))
-    values.insert(backend.key(7), gtsam.SL4(H_world_j))
+    values.insert(backend.graph.key(3), gtsam.SL4(H_world_i))
+    values.insert(backend.graph.key(7), gtsam.SL4(H_world_j))
 
-    error = backend.relative_factor(3, 7, H_i_j, gtsam.noiseModel.Unit.Create(15)).unwhitenedError(values)
+    error = backend.graph.relative_factor(3, 7, H_i_j, gtsam.noiseModel.Unit.Create(15)).unwhitenedError(values)
 
     E = np.linalg.inv(H_world_i) @ H_world_j @ np.linalg.inv(H_i_j)
     paper_residual = sl4_log(E)
@@ -118,7 +118,7 @@ def test_sl4_factor_residual_is_the_papers():
     # ... which is -Log(E) up to O(|delta|^2).
     assert np.linalg.norm(-error - paper_residual) < 2 * np.linalg.norm(delta) ** 2
     # The naive orientation (i, j, H_i_j) conjugates the residual by H_i_j: first-order different.
-    naive = gtsam.BetweenFactorSL4(backend.key(3), backend.key(7), gtsam.SL4(H_i_j), gtsam.noiseModel.Unit.Create(15))
+    naive = gtsam.BetweenFactorSL4(backend.graph.key(3), backend.graph.key(7), gtsam.SL4(H_i_j), gtsam.noiseModel.Unit.Create(15))
     assert np.linalg.norm(naive.unwhitenedError(values) - paper_residual) > 0.2 * np.linalg.norm(delta)
 
 
@@ -129,10 +129,10 @@ def test_sim3_factor_residual_is_the_papers_exactly():
     H_world_i = random_sim3(rng, 0.5, 2.0, 0.3)
     H_world_j = random_sim3(rng, 0.5, 2.0, 0.3)
     values = gtsam.Values()
-    values.insert(backend.key(0), backend._to_gtsam(H_world_i))
-    values.insert(backend.key(1), backend._to_gtsam(H_world_j))
+    values.insert(backend.graph.key(0), backend.graph._to_gtsam(H_world_i))
+    values.insert(backend.graph.key(1), backend.graph._to_gtsam(H_world_j))
 
-    error = backend.relative_factor(0, 1, H_i_j, gtsam.noiseModel.Unit.Create(7)).unwhitenedError(values)
+    error = backend.graph.relative_factor(0, 1, H_i_j, gtsam.noiseModel.Unit.Create(7)).unwhitenedError(values)
 
     E = np.linalg.inv(H_world_i) @ H_world_j @ np.linalg.inv(H_i_j)
     # exp of the negated error in GTSAM's Sim(3) algebra must give back E (GTSAM's matrix of a
@@ -145,8 +145,8 @@ def test_sim3_conversion_is_exact():
     rng = np.random.default_rng(2)
     T = random_sim3(rng, 1.0, 3.0, 0.5)
     backend = Sim3Backend(BackendConfig())
-    S = backend._to_gtsam(T)
-    np.testing.assert_allclose(backend._from_gtsam(S), T, atol=1e-13)
+    S = backend.graph._to_gtsam(T)
+    np.testing.assert_allclose(backend.graph._from_gtsam(S), T, atol=1e-13)
     point = rng.normal(size=3)
     np.testing.assert_allclose(S.transformFrom(point), T[:3, :3] @ point + T[:3, 3], atol=1e-13)
 
@@ -184,26 +184,26 @@ def test_loop_closure_reduces_sl4_drift():
     assert np.linalg.norm(with_loop[20] - truth[20]) < 0.3 * np.linalg.norm(without[20] - truth[20])
     assert backend.num_loops == 1
     # ... and fully: batch Levenberg-Marquardt on the same graph from the odometry guess agrees.
-    graph, initial = backend.factor_graph(), gtsam.Values()
+    graph, initial = backend.graph.factor_graph(), gtsam.Values()
     for k, H in without.items():
-        initial.insert(backend.key(k), gtsam.SL4(H))
+        initial.insert(backend.graph.key(k), gtsam.SL4(H))
     params = gtsam.LevenbergMarquardtParams()
     params.setRelativeErrorTol(1e-14)
     params.setAbsoluteErrorTol(1e-15)
     params.setMaxIterations(200)
     batch = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
-    assert graph.error(backend.gtsam_values()) == pytest.approx(graph.error(batch), rel=1e-4)
+    assert graph.error(backend.graph._isam.calculateBestEstimate()) == pytest.approx(graph.error(batch), rel=1e-4)
     for k in with_loop:
-        np.testing.assert_allclose(with_loop[k], batch.atSL4(backend.key(k)).matrix(), atol=1e-3)
+        np.testing.assert_allclose(with_loop[k], batch.atSL4(backend.graph.key(k)).matrix(), atol=1e-3)
     # the single-node read agrees with the full estimate
     for k in (0, 10, 20):
         np.testing.assert_allclose(backend.H_world_submap(k), with_loop[k], atol=1e-8)
     # the final polish removes what the relinearization threshold left
-    final = backend.final_estimates()
+    final = backend.world_estimate(final=True).H_world_submap
     for k in with_loop:
-        np.testing.assert_allclose(final[k], batch.atSL4(backend.key(k)).matrix(), atol=1e-8)
+        np.testing.assert_allclose(final[k], batch.atSL4(backend.graph.key(k)).matrix(), atol=1e-8)
     # ... without touching iSAM2: the graph keeps growing
-    np.testing.assert_allclose(backend.estimates()[20], with_loop[20], atol=0)
+    np.testing.assert_allclose(backend.world_estimate().H_world_submap[20], with_loop[20], atol=0)
     backend.add_submap(21, odometry[-1])
     backend.update()
     assert backend.num_submaps == 22
@@ -253,12 +253,12 @@ def test_loop_chi2_equals_the_batch_marginal_computation():
     information = np.diag(rng.uniform(1e4, 1e5, backend.dim))
     chi2 = backend.loop_chi2(4, 19, measured, information)
 
-    values = backend.gtsam_values()
-    factor = backend.relative_factor(4, 19, measured, gtsam.noiseModel.Unit.Create(backend.dim))
+    values = backend.graph._isam.calculateBestEstimate()
+    factor = backend.graph.relative_factor(4, 19, measured, gtsam.noiseModel.Unit.Create(backend.dim))
     blocks = dict(zip(factor.keys(), np.split(factor.linearize(values).jacobian()[0], 2, axis=1)))
-    keys = [backend.key(19), backend.key(4)]
+    keys = [backend.graph.key(19), backend.graph.key(4)]
     A = np.concatenate([blocks[k] for k in keys], axis=1)
-    joint = gtsam.Marginals(backend.factor_graph(), values).jointMarginalCovariance(keys).fullMatrix()
+    joint = gtsam.Marginals(backend.graph.factor_graph(), values).jointMarginalCovariance(keys).fullMatrix()
     error = np.asarray(factor.unwhitenedError(values))
     expected = error @ np.linalg.solve(A @ joint @ A.T + np.linalg.inv(information), error)
     # iSAM2's tree is linearized where its variables last moved by more than the relinearization threshold
@@ -291,25 +291,25 @@ def test_revisits_reach_isam2_as_priors_and_the_final_polish_exactly(kind):
     online = run(revisits, odometry, loops)
     run(exact, odometry, loops)
     # one loop per lap closes a new stretch (node 0..10, 11..21, 22..32), the others revisit it
-    assert revisits.num_loops == len(loops) == 30 and revisits.num_revisit_priors == 27
-    assert exact.num_revisit_priors == 0
+    assert revisits.num_loops == len(loops) == 30 and revisits.graph.num_revisit_priors == 27
+    assert exact.graph.num_revisit_priors == 0
 
     def unary(graph):
         return sum(1 for k in range(graph.size()) if len(graph.at(k).keys()) == 1)
 
-    assert unary(revisits.incremental_graph()) == 1 + 27 and unary(revisits.factor_graph()) == 1
-    assert revisits.factor_graph().size() == exact.factor_graph().size() == revisits.incremental_graph().size()
+    assert unary(revisits.graph._isam.getFactorsUnsafe()) == 1 + 27 and unary(revisits.graph.factor_graph()) == 1
+    assert revisits.graph.factor_graph().size() == exact.graph.factor_graph().size() == revisits.graph._isam.getFactorsUnsafe().size()
     # the priors already pull the newer laps onto the map while the run goes on ...
     assert map_error(online, truth) < 0.5 * map_error(without_loops, truth)
     # ... and the polished map is the exact graph's optimum
-    polished, optimum = revisits.final_estimates(), exact.final_estimates()
+    polished, optimum = revisits.graph.final_estimates(), exact.graph.final_estimates()
     for k in optimum:
         np.testing.assert_allclose(polished[k], optimum[k], atol=1e-4)  # both stop at GN convergence
-    graph = exact.factor_graph()
-    values = exact.gtsam_values()
+    graph = exact.graph.factor_graph()
+    values = exact.graph._isam.calculateBestEstimate()
     for k, H in polished.items():
-        values.update(exact.key(k), exact._to_gtsam(H))
-    assert graph.error(values) == pytest.approx(graph.error(exact.polished_values()), rel=1e-6)
+        values.update(exact.graph.key(k), exact.graph._to_gtsam(H))
+    assert graph.error(values) == pytest.approx(graph.error(exact.graph.polished_values()), rel=1e-6)
 
 
 def test_revisit_priors_keep_the_bayes_tree_from_growing_with_the_laps():
@@ -320,7 +320,7 @@ def test_revisit_priors_keep_the_bayes_tree_from_growing_with_the_laps():
         truth, odometry, loops = lap_problem("sl4", laps=laps)
         backend = SL4Backend(BackendConfig(), revisit_priors=revisit_priors)
         run(backend, odometry, loops)
-        return backend._isam.treeNnz() / backend.num_submaps
+        return backend.graph._isam.treeNnz() / backend.num_submaps
 
     exact_growth = fill_per_node(False, 8) / fill_per_node(False, 3)
     revisit_growth = fill_per_node(True, 8) / fill_per_node(True, 3)
@@ -336,16 +336,16 @@ def test_a_revisit_is_gated_as_the_prior_isam2_takes():
     rng = np.random.default_rng(5)
     measured = np.linalg.inv(truth[4]) @ truth[19] @ random_sl4(rng, 0.05)
     information = np.diag(rng.uniform(1e4, 1e5, backend.dim))
-    assert backend.is_revisit(4, 19) and not backend.is_revisit(13, 19)
+    assert backend.graph.is_revisit(4, 19) and not backend.graph.is_revisit(13, 19)
     chi2 = backend.loop_chi2(4, 19, measured, information)
 
-    newer, prior, moved = backend.revisit_prior(4, 19, measured, information)
+    newer, prior, moved = backend.graph.revisit_prior(4, 19, measured, information)
     assert newer == 19
     np.testing.assert_allclose(prior, backend.H_world_submap(4) @ measured / np.linalg.det(measured) ** 0.25, atol=1e-9)
-    values = backend.gtsam_values()
-    factor = gtsam.PriorFactorSL4(backend.key(19), gtsam.SL4(prior), gtsam.noiseModel.Unit.Create(15))
+    values = backend.graph._isam.calculateBestEstimate()
+    factor = gtsam.PriorFactorSL4(backend.graph.key(19), gtsam.SL4(prior), gtsam.noiseModel.Unit.Create(15))
     A = factor.linearize(values).jacobian()[0]
-    marginal = gtsam.Marginals(backend.incremental_graph(), values).marginalCovariance(backend.key(19))
+    marginal = gtsam.Marginals(backend.graph._isam.getFactorsUnsafe(), values).marginalCovariance(backend.graph.key(19))
     error = np.asarray(factor.unwhitenedError(values))
     expected = error @ np.linalg.solve(A @ marginal @ A.T + np.linalg.inv(moved), error)
     assert chi2 > 1 and chi2 == pytest.approx(expected, rel=1e-3)
@@ -357,7 +357,7 @@ def test_a_revisit_is_gated_as_the_prior_isam2_takes():
     assert moved_xi @ moved @ moved_xi == pytest.approx(xi @ information @ xi, rel=1e-3)
 
 
-class FailingLoopBackend(SL4Backend):
+class FailingLoopGraph(SL4PoseGraph):
     """GTSAM fails on the next loop update (as an indeterminate system would)."""
 
     fail_next_loop = False
@@ -375,6 +375,10 @@ class FailingLoopBackend(SL4Backend):
         return super()._solve(factors, values, loop_keys)
 
 
+def FailingLoopBackend(config: BackendConfig, revisit_priors: bool = False) -> SubmapBackend:
+    return SubmapBackend(FailingLoopGraph(config, revisit_priors))
+
+
 @pytest.mark.parametrize("after_first_step", [False, True])
 def test_a_failed_loop_update_restores_the_estimate_it_started_from(after_first_step):
     """A graph that fails to absorb a loop is rebuilt at the estimate it had, not at the nodes' first
@@ -382,20 +386,20 @@ def test_a_failed_loop_update_restores_the_estimate_it_started_from(after_first_
     had already moved iSAM2's linearization point."""
     truth, odometry = sl4_problem(seed=6, odometry_noise=0.03)
     backend = FailingLoopBackend(BackendConfig(), revisit_priors=True)
-    backend.fail_after_first_step = after_first_step
+    backend.graph.fail_after_first_step = after_first_step
     before = run(backend, odometry, [(1, 20, np.linalg.inv(truth[1]) @ truth[20])])
     guesses = chain(odometry)
     assert max(np.abs(before[k] - guesses[k]).max() for k in before) > 0.05  # the loop moved the map
-    optimum = backend.final_estimates()  # (iSAM2 itself stops iterating within loop_step_threshold of it)
-    backend.fail_next_loop = True
+    optimum = backend.world_estimate(final=True).H_world_submap  # (iSAM2 itself stops iterating within loop_step_threshold of it)
+    backend.graph.fail_next_loop = True
     wrong = np.linalg.inv(truth[3]) @ truth[17] @ random_sl4(np.random.default_rng(1), 0.1)  # a step to undo
     backend.add_loop(3, 17, wrong)
     with pytest.raises(BackendUpdateError, match="^RuntimeError: Indeterminate"):  # the message's first line
         backend.update()
-    after = backend.estimates()
+    after = backend.world_estimate().H_world_submap
     assert backend.num_loops == 1 and sorted(after) == sorted(before)
     # the failed loop was a revisit (node 3 lies on the cycle 1..20): gone from both graphs
-    assert backend.num_revisit_priors == 0 and backend.factor_graph().size() == backend.incremental_graph().size()
+    assert backend.graph.num_revisit_priors == 0 and backend.graph.factor_graph().size() == backend.graph._isam.getFactorsUnsafe().size()
     # rebuilt at the optimum (within iSAM2's own step there, ~1e-4: SL(4)'s first-order chart);
     # rebuilt from the first guesses, one step left it 0.02 away
     assert max(np.abs(after[k] - optimum[k]).max() for k in before) < 1e-3
@@ -456,14 +460,15 @@ def test_pure_odometry_update_does_not_iterate():
     backend = SL4Backend(BackendConfig())
     _, odometry = sl4_problem(seed=9, odometry_noise=0.02)
     run(backend, odometry, [])
-    assert backend.last_update_iterations == 1
-    assert backend.num_updates == NUM_SUBMAPS
+    assert backend.graph.last_update_iterations == 1
+    assert backend.graph.num_updates == NUM_SUBMAPS
 
 
-def test_make_backend_checks_config():
-    assert isinstance(make_backend(BackendConfig(kind="sim3")), Sim3Backend)
-    assert isinstance(make_backend(BackendConfig()), Backend)
+def test_make_backend_builds_the_named_graph_and_the_section_checks_itself():
+    assert isinstance(make_backend(BackendConfig(kind="sim3", graph="submap")), Sim3Backend)
+    assert isinstance(make_backend(BackendConfig(graph="submap")), SL4Backend)
+    assert make_backend(BackendConfig(graph="keyframe")).design == "keyframe"
     for bad in (dict(kind="se3"), dict(loop_kernel="tukey"), dict(sigma=0.0), dict(loop_kernel_width=-1.0),
                 dict(relinearize_skip=0)):
         with pytest.raises(UserError):
-            make_backend(dataclasses.replace(BackendConfig(), **bad))
+            dataclasses.replace(BackendConfig(), **bad).validate()

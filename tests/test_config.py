@@ -6,9 +6,10 @@ import dataclasses
 
 import pytest
 
-from sl4slam.cli import build_parser
-from sl4slam.config import AlignmentConfig, SLAMConfig, sections
+from sl4slam.cli import build_parser, config_from_args
+from sl4slam.config import AlignmentConfig, SLAMConfig, config_from_dict, sections
 from sl4slam.errors import UserError
+from sl4slam.resolve import resolve
 
 BAD_VALUES = [
     ("submap", "tau_conf", 150.0, "--tau-conf"),
@@ -23,9 +24,11 @@ BAD_VALUES = [
     ("backend", "loop_kernel", "tukey", "--backend-loop-kernel"),
     ("retrieval", "orb_ratio", 1.5, "--orb-ratio"),
     ("loops", "consistency_quantile", 1.0, "--loop-consistency-quantile"),
-    ("sim", "false_loop_rate", 2.0, "--sim-false-loop-rate"),
+    ("false_loops", "rate", 2.0, "--false-loop-rate"),
     ("output", "max_map_points", 0, "--max-map-points"),
-    ("vggt", "device", "tpu", "--device"),
+    ("model", "head_chunk_frames", 0, "--head-chunk-frames"),
+    ("localize", "min_inliers", 2, "--localize-min-inliers"),
+    ("source", "stride", 0, "--stride"),
 ]
 
 
@@ -49,13 +52,40 @@ def test_defaults_are_valid_and_every_field_has_a_flag() -> None:
             assert section.flag(f.name) in parser_flags, (section.section, f.name)
 
 
+def test_a_top_level_value_out_of_range_names_its_flag() -> None:
+    with pytest.raises(UserError, match="--device \\(config key device\\)"):
+        SLAMConfig(device="tpu").validate()
+
+
 def test_a_projective_model_cannot_feed_a_similarity_graph() -> None:
-    config = SLAMConfig()
+    config = SLAMConfig(frontend="simulated")
+    config.retrieval.kind = "none"
     config.backend.kind, config.alignment.model = "sim3", "sl4"
     with pytest.raises(UserError, match="Sim\\(3\\) graph"):
-        config.validate()
+        resolve(config)
     config.alignment.model = "sim3-points"
-    config.validate()
+    resolve(config)
+
+
+def test_settings_of_earlier_releases_are_read_under_their_current_names() -> None:
+    config = config_from_dict({"stride": 3, "max_frames": 50, "vggt": {"weights": "w.pt", "device": "cpu", "dtype": "bf16"},
+                               "sim": {"false_loop_rate": 0.3, "seed": 2}})
+    assert (config.source.stride, config.source.max_frames) == (3, 50)
+    assert (config.model.weights, config.model.dtype, config.device) == ("w.pt", "bf16", "cpu")
+    assert config.false_loops.rate == 0.3 and config.sim.seed == 2
+    # the current key wins when both are given
+    assert config_from_dict({"stride": 3, "source": {"stride": 5}}).source.stride == 5
+
+
+def test_every_section_is_reachable_from_a_file_and_the_command_line(tmp_path) -> None:
+    """The all-frame localization's settings were outside the tree: ``--all-frames`` always ran with
+    its defaults."""
+    (tmp_path / "c.toml").write_text("[localize]\nmin_inliers = 30\n[false_loops]\nrate = 0.2\n")
+    args = build_parser().parse_args(["run", "src", "--out", "o", "--config", str(tmp_path / "c.toml"),
+                                      "--localize-max-corners", "250", "--model", "pi3", "--sim-false-loop-rate", "0.4"])
+    config = config_from_args(args)
+    assert config.localize.min_inliers == 30 and config.localize.max_corners == 250
+    assert config.frontend == "pi3" and config.false_loops.rate == 0.4
 
 
 def test_advanced_settings_are_grouped_last_in_help() -> None:

@@ -124,7 +124,7 @@ def test_bad_grid_specs_are_one_clear_error(spec, words) -> None:
 
 def test_runs_set_every_seed() -> None:
     config = seeded(SLAMConfig(), 3)
-    assert config.sim.seed == 3 and config.alignment.seed == 3
+    assert config.sim.seed == config.alignment.seed == config.retrieval.seed == config.false_loops.seed == 3
     assert SLAMConfig().sim.seed == 0  # the defaults are untouched
 
 
@@ -147,19 +147,19 @@ def test_cache_key_holds_what_changes_the_frontend_output_only() -> None:
     # which frames are asked for, and what the simulator returns, change it
     assert changed(lambda c: setattr(c.submap, "size", 16))
     assert changed(lambda c: setattr(c.keyframes, "tau_disparity", 5.0))
-    assert changed(lambda c: setattr(c, "stride", 2))
+    assert changed(lambda c: setattr(c.source, "stride", 2))
     assert changed(lambda c: setattr(c.sim, "seed", 1))
     assert changed(lambda c: setattr(c.retrieval, "kind", "orb"))
-    # ORB retrieval is seeded by alignment.seed: then the seed matters
+    # ORB retrieval is seeded (retrieval.seed, set by the runs): then the seed matters
     orb = small_config()
     orb.retrieval.kind = "orb"
     orb_seeded = seeded(orb, 1)
     assert frontend_cache_key(orb, sequence) != frontend_cache_key(orb_seeded, sequence)
     # a VGGT recording made on a GPU replays on a CPU
     gpu, cpu = SLAMConfig(), SLAMConfig()
-    gpu.vggt.device, cpu.vggt.device = "cuda", "cpu"
+    gpu.device, cpu.device = "cuda", "cpu"
     assert frontend_cache_key(gpu, sequence) == frontend_cache_key(cpu, sequence)
-    gpu.vggt.dtype = "fp16"
+    gpu.model.dtype = "fp16"
     assert frontend_cache_key(gpu, sequence) != frontend_cache_key(cpu, sequence)
 
 
@@ -328,7 +328,7 @@ def test_real_tum_excerpt(shared_dir, tmp_path) -> None:
     root.mkdir()
     os.symlink(shared_dir / "data" / "tum_rgbd_fr1_xyz_first37", root / "rgbd_dataset_freiburg1_xyz")
     config = small_config()
-    config.stride = 6  # 7 frames of 640x480
+    config.source.stride = 6  # 7 frames of 640x480
     config.keyframes.tau_disparity = 5.0
     config.submap.size = 3
     outcome = evaluate(root, tmp_path / "out", EvalSettings(dataset="tum", runs=1), config, workers=1, progress=False)

@@ -15,8 +15,8 @@ import pytest
 from result_folders import run_small_world, write_known_result
 from sl4slam.errors import UserError
 from sl4slam.export import colmap_pose, export_colmap, export_nerfstudio, export_result, export_submap_ply, pinhole_params
-from sl4slam.outputs import read_ply
-from sl4slam.results import load_result
+from sl4slam.result.outputs import read_ply
+from sl4slam.result.reading import load_result
 
 
 @pytest.fixture(scope="module")

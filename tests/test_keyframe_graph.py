@@ -17,21 +17,19 @@ from scipy.spatial.transform import Rotation
 from sl4slam.alignment import HybridAligner
 from sl4slam.alignment.sim3 import calibration_scale_link
 from sl4slam.backend import BackendUpdateError, KeyframeBackend, Sim3Backend, SL4Backend, SubmapFrames, make_backend
-from sl4slam.backend.base import adjoint_matrix, transport_information
-from sl4slam.config import (AlignmentConfig, BackendConfig, SLAMConfig, alignment_model, attention_check,
-                            metric_upgrade_on)
+from sl4slam.backend.pose_graph import adjoint_matrix, transport_information
+from sl4slam.config import AlignmentConfig, BackendConfig, SLAMConfig
+from sl4slam.resolve import AlignmentModel, GraphDesign, resolve
 from sl4slam.edges import is_camera_link
 from sl4slam.errors import UserError
-from sl4slam.frontend import make_frontend
 from sl4slam.frontend.overlap import overlap_match_ratio
 from sl4slam.geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse, unproject_depth
 from sl4slam.io import open_source
 from sl4slam.models.vggt.attention import MatchRatioProbe, mean_top_quarter
 from sl4slam.models.vggt.model import VGGT, VGGTModelConfig
 from sl4slam.models.vggt.weights import load_state_dict_into
-from sl4slam.outputs import compute_ate
+from sl4slam.result.outputs import compute_ate
 from sl4slam.pipeline import SLAMPipeline
-from sl4slam.retrieval import make_retrieval
 from sl4slam.runner import run_slam
 from sl4slam.synthetic import write_synthetic_sequence
 from sl4slam.types import FrameView
@@ -242,7 +240,7 @@ def test_revisits_of_closed_places_are_priors_on_keyframe_nodes() -> None:
                 backend.add_loop(older, k, normalize_sl4(H), np.eye(15) * 1e3, frames=(frames[older].frame_indices[0],
                                                                                        frames[k].frame_indices[-1]))
                 backend.update()
-        results[revisit_priors] = (backend.nodes.num_revisit_priors, backend.final_estimates())
+        results[revisit_priors] = (backend.nodes.num_revisit_priors, backend.world_estimate(final=True).H_world_submap)
     # the second loop's older keyframe (frame 12, in submap 1) lies on the cycle the first closed
     assert results[True][0] == 1 and results[False][0] == 0
     for k in range(4):
@@ -250,25 +248,38 @@ def test_revisits_of_closed_places_are_priors_on_keyframe_nodes() -> None:
 
 
 def test_graph_setting() -> None:
-    """"auto" is the keyframe graph for SL(4) and the submap graph for Sim(3); an explicit keyframe
-    graph with Sim(3) is refused."""
-    config = SLAMConfig()
-    assert config.backend.graph == "auto" and config.backend.design == "keyframe"
-    assert alignment_model(config) == "calibration" and attention_check(config) and not metric_upgrade_on(config)
-    assert isinstance(make_backend(config.backend), KeyframeBackend) and make_backend(config.backend).nodes.revisit_priors
+    """"auto" is the keyframe graph for SL(4) and the submap graph for Sim(3), settled once by
+    ``resolve`` with the rules that go with it; an explicit keyframe graph with Sim(3) is refused."""
+    config = SLAMConfig(frontend="simulated")
+    config.retrieval.kind = "orb"
+    resolved = resolve(config)
+    assert config.backend.graph == "auto" and resolved.config.backend.graph == "keyframe"  # the user's tree is kept
+    assert (resolved.graph, resolved.alignment) == (GraphDesign.KEYFRAME, AlignmentModel.CALIBRATION)
+    assert resolved.attention_check and not resolved.metric_upgrade
+    backend = make_backend(resolved.config.backend)
+    assert isinstance(backend, KeyframeBackend) and backend.nodes.revisit_priors
     config.upgrade.mode = "on"
-    assert metric_upgrade_on(config)
+    assert resolve(config).metric_upgrade
     config.upgrade.mode = "auto"
     config.backend.graph = "submap"
-    assert alignment_model(config) == "sl4" and not attention_check(config) and metric_upgrade_on(config)
-    assert isinstance(make_backend(config.backend), SL4Backend) and not make_backend(config.backend).revisit_priors
+    resolved = resolve(config)
+    assert resolved.alignment is AlignmentModel.SL4 and not resolved.attention_check and resolved.metric_upgrade
+    assert resolved.complete_links and any("metric upgrade: on (auto" in note for note in resolved.notes)
+    backend = make_backend(resolved.config.backend)
+    assert isinstance(backend, SL4Backend) and not backend.graph.revisit_priors
     config.backend.kind, config.backend.graph = "sim3", "auto"
-    config.validate()
-    assert config.backend.design == "submap" and alignment_model(config) == "sim3-cameras" and not metric_upgrade_on(config)
-    assert isinstance(make_backend(config.backend), Sim3Backend)
+    resolved = resolve(config)
+    assert resolved.graph is GraphDesign.SUBMAP and resolved.alignment is AlignmentModel.SIM3_CAMERAS
+    assert not resolved.metric_upgrade and not resolved.complete_links
+    assert isinstance(make_backend(resolved.config.backend), Sim3Backend)
     config.backend.graph = "keyframe"
     with pytest.raises(UserError, match="--graph"):
-        config.validate()
+        resolve(config)
+    config.backend.graph, config.alignment.model = "submap", "sl4"
+    with pytest.raises(UserError, match="--alignment sl4"):
+        resolve(config)
+    config.backend.kind, config.alignment.model, config.retrieval.kind = "sl4", "auto", "none"
+    assert not resolve(config).attention_check  # no retrieval: no loops to check
 
 
 # ---------------------------------------------------------------------------- end to end on the synthetic world
@@ -279,18 +290,19 @@ def world(tmp_path_factory) -> Path:
                                     seed=1)
 
 
-def world_config(graph: str, **sim) -> SLAMConfig:
+def world_config(graph: str, false_loop_rate: float = 0.0, **sim) -> SLAMConfig:
     config = SLAMConfig(frontend="simulated")
     config.keyframes.tau_disparity = 12.0
     config.retrieval.kind = "orb"
     config.backend.graph = graph
     for key, value in sim.items():
         setattr(config.sim, key, value)
+    config.false_loops.rate, config.false_loops.seed = false_loop_rate, config.sim.seed
     return config
 
 
 def run(world: Path, config: SLAMConfig):
-    pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval, false_loops=config.sim))
+    pipeline = SLAMPipeline(config)
     return pipeline, pipeline.run(open_source(str(world)), progress=False)
 
 

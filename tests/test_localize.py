@@ -11,7 +11,6 @@ import pytest
 from result_folders import small_world_config
 from sl4slam.config import SLAMConfig
 from sl4slam.errors import UserError
-from sl4slam.frontend import make_frontend
 from sl4slam.io import ListSource, open_source
 from sl4slam.localize import (
     FrameLocalizer,
@@ -22,7 +21,7 @@ from sl4slam.localize import (
     views_from_result,
 )
 from sl4slam.pipeline import SLAMPipeline
-from sl4slam.results import load_result
+from sl4slam.result.reading import load_result
 from sl4slam.synthetic import write_synthetic_sequence
 
 
@@ -35,7 +34,7 @@ def world(tmp_path_factory):
 def world_run(world):
     config = small_world_config(perspective=0.1)
     config.keyframes.tau_disparity = 12.0  # fewer keyframes: about half the frames are localized
-    pipeline = SLAMPipeline(config, make_frontend(config))
+    pipeline = SLAMPipeline(config, retrieval=None)
     source = open_source(str(world))
     return source, pipeline.run(source, progress=False), config
 
@@ -144,7 +143,7 @@ def test_all_frames_on_the_tum_excerpt(shared_dir) -> None:
     config.retrieval.kind = "none"
     config.sim.perspective = 0.1
     source = open_source(str(shared_dir / "data" / "tum_rgbd_fr1_xyz_first37"))
-    result = SLAMPipeline(config, make_frontend(config)).run(source, progress=False)
+    result = SLAMPipeline(config, retrieval=None).run(source, progress=False)
     poses = localize_frames(source, _views(result))
     assert poses.failed == [] and (~poses.is_keyframe).sum() >= 25
     split = split_ate(poses)

@@ -11,12 +11,10 @@ import pytest
 
 from sl4slam.config import SLAMConfig
 from sl4slam.errors import UserError
-from sl4slam.frontend import make_frontend
 from sl4slam.frontend.simulated import SimulatedFrontend
 from sl4slam.io import ListSource, open_source, read_tum_trajectory
-from sl4slam.outputs import compute_ate, read_ply
+from sl4slam.result.outputs import compute_ate, read_ply
 from sl4slam.pipeline import SLAMPipeline
-from sl4slam.retrieval import make_retrieval
 from sl4slam.runner import run_slam
 from sl4slam.synthetic import read_synthetic_metadata, write_synthetic_sequence
 
@@ -52,7 +50,7 @@ def run(world: Path, **kwargs):
     key = tuple(sorted(kwargs.items()))
     if key not in _results:
         config = make_config(**kwargs)
-        pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+        pipeline = SLAMPipeline(config)
         _results[key] = pipeline.run(open_source(str(world)), progress=False)
         _pipelines[key] = pipeline
     return _results[key]
@@ -107,23 +105,23 @@ def test_metric_upgrade_that_cannot_be_estimated_keeps_the_map(world: Path, monk
     def broken(*args, **kwargs):
         raise UserError("P_world[3] has a singular left 3x3 block (a camera at infinity)")
 
-    monkeypatch.setattr("sl4slam.upgrade.estimate_metric_upgrade", broken)
+    monkeypatch.setattr("sl4slam.metric_frame.estimate_metric_upgrade", broken)
     result = pipeline.result()
     [summary] = result.stats["metric_upgrade"]
     assert not summary["applied"] and "cannot be estimated" in summary["reason"] and "infinity" in summary["reason"]
     assert len(result.keyframes) == len(expected.keyframes) and np.isfinite(result.T_world_cam).all()
     # switched off: not even attempted
-    pipeline.config.upgrade.mode = "off"
+    pipeline.metric_frame.upgrade_at_end = False
     try:
         assert pipeline.result().stats["metric_upgrade"] == []
     finally:
-        pipeline.config.upgrade.mode = "auto"
+        pipeline.metric_frame.upgrade_at_end = True
 
 
 def test_run_is_deterministic(world: Path) -> None:
     first = run(world, backend="sl4")
     config = make_config()
-    again = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval)).run(open_source(str(world)), progress=False)
+    again = SLAMPipeline(config).run(open_source(str(world)), progress=False)
     np.testing.assert_array_equal(first.T_world_cam, again.T_world_cam)
 
 
@@ -178,7 +176,7 @@ def test_static_camera_is_a_clear_error(world: Path) -> None:
     frames = [frame.__class__(**{**frame.__dict__, "index": i, "timestamp": float(i)}) for i in range(5)]
     config = make_config(retrieval="none")
     with pytest.raises(UserError, match="keyframe"):
-        SLAMPipeline(config, make_frontend(config)).run(ListSource(frames), progress=False)
+        SLAMPipeline(config, retrieval=None).run(ListSource(frames), progress=False)
 
 
 @pytest.mark.slow
@@ -211,7 +209,7 @@ def test_fallback_links_are_completed_from_the_cameras(world: Path) -> None:
     for complete in (False, True):
         config = make_config(perspective=0.1, complete_links=complete)
         config.sim.distort_first_submap = True  # the realistic case: a distortion the upgrade must remove
-        pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+        pipeline = SLAMPipeline(config)
         result = pipeline.run(open_source(str(world)), progress=False)
         assert result.stats["metric_upgrade"][0]["applied"]
         ate[complete] = compute_ate(result).rmse

@@ -9,17 +9,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sl4slam.backend import BackendUpdateError, SL4Backend
+from sl4slam.backend import BackendUpdateError, SL4PoseGraph, SubmapBackend
 from sl4slam.config import SLAMConfig
 from sl4slam.errors import UserError
-from sl4slam.frontend import make_frontend
+from sl4slam.frontend import CachingFrontend, make_frontend
 from sl4slam.frontend.simulated import SimulatedFrontend
 from sl4slam.io import ListSource, open_source
-from sl4slam.outputs import compute_ate
+from sl4slam.result.outputs import compute_ate
 from sl4slam.pipeline import FrontendFailedError, SLAMPipeline
-from sl4slam.retrieval import make_retrieval
 from sl4slam.runner import RunInterrupted, run_slam
 from sl4slam.synthetic import write_synthetic_sequence
+from sl4slam.types import FrontendCapabilities
 
 
 @pytest.fixture(scope="module")
@@ -28,24 +28,26 @@ def small_world(tmp_path_factory) -> Path:
     return write_synthetic_sequence(tmp_path_factory.mktemp("small") / "world", num_frames=360, width=160, height=120, seed=1)
 
 
-def small_config(**sim) -> SLAMConfig:
+def small_config(false_loop_rate: float = 0.0, **sim) -> SLAMConfig:
     config = SLAMConfig(frontend="simulated")
     config.keyframes.tau_disparity = 12.0
     config.retrieval.kind = "orb"
     config.sim.perspective = 0.05
     for key, value in sim.items():
         setattr(config.sim, key, value)
+    config.false_loops.rate, config.false_loops.seed = false_loop_rate, config.sim.seed
     return config
 
 
 def run(world: Path, config: SLAMConfig, frontend=None, backend=None):
-    pipeline = SLAMPipeline(config, frontend if frontend is not None else make_frontend(config),
-                            make_retrieval(config.retrieval, false_loops=config.sim), backend=backend)
+    pipeline = SLAMPipeline(config, frontend, backend=backend)
     return pipeline, pipeline.run(open_source(str(world)), progress=False)
 
 
 class FailingFrontend(SimulatedFrontend):
-    """Raises on the chosen submaps, like a model running out of memory."""
+    """Raises on the chosen submaps, like a model running out of memory (and scores no image pairs)."""
+
+    capabilities = FrontendCapabilities(needs_ground_truth=True)
 
     def __init__(self, config, failing: set[int]):
         super().__init__(config)
@@ -57,17 +59,26 @@ class FailingFrontend(SimulatedFrontend):
         return super().reconstruct(frames, submap_id)
 
 
-def test_a_frontend_without_match_scores_runs_without_the_attention_check(small_world: Path) -> None:
-    """A frontend whose reconstruct() takes no ``match_pairs`` cannot feed the attention loop check:
-    "auto" runs without it (other checks still guard the loops), an explicit "on" is refused up front."""
+def test_a_frontend_without_match_scores_runs_without_the_attention_check(small_world: Path, tmp_path: Path) -> None:
+    """A frontend that declares no image-match scores cannot feed the attention loop check: "auto"
+    runs without it (other checks still guard the loops), an explicit "on" is refused up front. The
+    capability is declared, not guessed: a replayed recording without match ratios cannot score
+    either, whatever its reconstruct() accepts."""
     config = small_config()
     config.backend.graph = "keyframe"  # whose "auto" attention check is on
-    plain = SLAMPipeline(config, FailingFrontend(config.sim, set()), make_retrieval(config.retrieval))
-    scoring = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+    plain = SLAMPipeline(config, FailingFrontend(config.sim, set()))
+    scoring = SLAMPipeline(config)
     assert scoring.loop_verifier.attention and not plain.loop_verifier.attention
+    recording = tmp_path / "cache"
+    unscored = SLAMPipeline(config, CachingFrontend(FailingFrontend(config.sim, set()), recording), retrieval=None)
+    unscored.run(open_source(str(small_world)), progress=False)
+    replayed = SLAMPipeline(config, make_frontend(config, replay_dir=recording))
+    assert not replayed.frontend.capabilities.scores_pairs and not replayed.loop_verifier.attention
     config.loops.verify_attention = "on"
     with pytest.raises(UserError, match="--loop-verify-attention on needs image-match ratios"):
-        SLAMPipeline(config, FailingFrontend(config.sim, set()), make_retrieval(config.retrieval))
+        SLAMPipeline(config, FailingFrontend(config.sim, set()))
+    with pytest.raises(UserError, match="--loop-verify-attention on needs image-match ratios"):
+        SLAMPipeline(config, make_frontend(config, replay_dir=recording))
 
 
 def test_a_failing_submap_is_skipped_and_the_run_goes_on(small_world: Path) -> None:
@@ -88,22 +99,22 @@ def test_a_frontend_failing_again_and_again_ends_the_run_with_its_results(small_
     with pytest.raises(FrontendFailedError, match="3 submaps in a row"):
         SLAMPipeline(config, FailingFrontend(config.sim, {3, 4, 5})).run(open_source(str(small_world)), progress=False)
     # through the runner the finished part is written before the run ends
-    import sl4slam.frontend as frontends
+    import sl4slam.compose as compose
 
-    original = frontends.make_frontend
-    frontends.make_frontend = lambda cfg, **kw: FailingFrontend(cfg.sim, {3, 4, 5})
+    original = compose.build_frontend
+    compose.build_frontend = lambda resolved, *args, **kw: FailingFrontend(resolved.config.sim, {3, 4, 5})
     try:
         with pytest.raises(RunInterrupted, match="partial results") as caught:
             run_slam(small_world, tmp_path / "out", config, progress=False)
     finally:
-        frontends.make_frontend = original
+        compose.build_frontend = original
     assert caught.value.exit_code == 1
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["status"] == "failed" and summary["counts"]["submaps"] == 6
     assert len((tmp_path / "out" / "trajectory.txt").read_text().splitlines()) - 1 == summary["counts"]["keyframes"] > 0
 
 
-class FlakyBackend(SL4Backend):
+class FlakyGraph(SL4PoseGraph):
     """GTSAM fails once on the chosen submap's odometry (as an indeterminate system would)."""
 
     def __init__(self, config, fail_at: int):
@@ -114,6 +125,11 @@ class FlakyBackend(SL4Backend):
         if self.fail_at in self._pending_ids and not any(s == self.fail_at for s in self._segments):
             raise RuntimeError("IndeterminateSystemException: near variable s3 (simulated)")
         return super()._solve(factors, values, loop_keys)
+
+
+def FlakyBackend(config, fail_at: int) -> SubmapBackend:
+    """The submap graph on :class:`FlakyGraph`."""
+    return SubmapBackend(FlakyGraph(config, fail_at))
 
 
 def test_a_graph_update_that_fails_starts_a_new_segment(small_world: Path) -> None:
@@ -144,7 +160,7 @@ def test_backend_rolls_back_a_failed_update() -> None:
     assert backend.submap_ids == [0, 1] and backend.num_submaps == 2
     backend.start_segment(2, np.eye(4))
     backend.update()
-    assert backend.segments == [0, 2] and set(backend.estimates()) == {0, 1, 2}
+    assert backend.segments == [0, 2] and set(backend.world_estimate().H_world_submap) == {0, 1, 2}
 
 
 class GarbageFrontend(SimulatedFrontend):
@@ -179,7 +195,7 @@ class UnreadableLoopFrames(ListSource):
 def test_a_loop_frame_that_cannot_be_read_is_rejected_not_fatal(small_world: Path) -> None:
     config = small_config()
     frames = list(open_source(str(small_world)))
-    pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
+    pipeline = SLAMPipeline(config)
     result = pipeline.run(UnreadableLoopFrames(frames), progress=False)
     rejected = [e for e in result.edges if e.kind == "loop" and not e.accepted]
     assert rejected and all("cannot be read again" in e.reason for e in rejected)

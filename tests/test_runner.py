@@ -19,8 +19,8 @@ import sl4slam.io as io
 from sl4slam.config import SLAMConfig
 from sl4slam.errors import MissingWeightsError, UserError
 from sl4slam.io import read_tum_trajectory
-from sl4slam.outputs import read_ply
-from sl4slam.runner import prepare_output, run_slam
+from sl4slam.result.outputs import read_ply
+from sl4slam.runner import format_length, prepare_output, run_slam
 from sl4slam.synthetic import write_synthetic_sequence
 
 
@@ -187,5 +187,7 @@ def test_progress_outside_a_terminal_is_plain_lines(world: Path, tmp_path: Path)
     lines = [line for line in proc.stderr.splitlines() if line.startswith("sl4slam: ")]
     assert lines and all("submaps" in line and "frames" in line for line in lines)
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert len(lines) == summary["counts"]["submaps"] // 2
-    assert f"ATE RMSE {summary['ate']['rmse']:.4f} m" in proc.stdout
+    # a line every second submap, and a last one with the final count (a log never ends stale)
+    assert len(lines) == summary["counts"]["submaps"] // 2 + 1
+    assert lines[-1].startswith(f"sl4slam: {summary['counts']['frames']}/") and f"{summary['counts']['submaps']} submaps" in lines[-1]
+    assert f"ATE RMSE {format_length(summary['ate']['rmse'])}" in proc.stdout

@@ -271,11 +271,11 @@ def test_load_salad_offline_download_failure_says_where_to_put_the_file(tmp_path
 def test_load_salad_rejects_a_foreign_checkpoint(tmp_path, tiny_dir) -> None:
     path = tmp_path / "tiny.ckpt"
     torch.save(load_file(str(tiny_dir / "state_dict.safetensors")), str(path))
-    with pytest.raises(UserError, match="not a SALAD .* wrong shapes"):
+    with pytest.raises(UserError, match="holds a SALAD checkpoint of another size, not the released SALAD .* wrong shapes"):
         load_salad(path)
     garbage = tmp_path / "garbage.ckpt"
     garbage.write_bytes(b"not a checkpoint")
-    with pytest.raises(UserError, match="cannot read SALAD checkpoint"):
+    with pytest.raises(UserError, match="not a PyTorch or safetensors checkpoint.*--salad-weights"):
         load_salad(garbage)
 
 

@@ -96,7 +96,7 @@ def test_vggt_profile_scale_gauge_ratio_between_windows(windows):
 
 
 def test_exact_profile_is_the_defaults_and_profiles_are_complete():
-    assert SimulatorConfig.from_profile("exact") == SimulatorConfig()
+    assert SimulatorConfig.from_profile("exact").resolved() == SimulatorConfig().resolved()
     assert set(SIM_PROFILES) == set(SIM_PROFILE_VALUES)
     names = {f.name for f in dataclasses.fields(SimulatorConfig)}
     for profile, values in SIM_PROFILE_VALUES.items():
@@ -106,45 +106,70 @@ def test_exact_profile_is_the_defaults_and_profiles_are_complete():
         SimulatedFrontend(config)  # every profile passes its own validation
 
 
-def test_applying_a_profile_resets_earlier_settings_but_not_how_to_run():
-    config = SimulatorConfig(depth_noise=0.3, camera_rotation_deg=9.0, seed=7, distort_first_submap=False)
-    apply_sim_profile(config, "vggt")
-    assert config.depth_noise == SIM_PROFILE_VALUES["vggt"]["depth_noise"]
-    assert config.camera_rotation_deg == SIM_PROFILE_VALUES["vggt"]["camera_rotation_deg"]
-    assert config.seed == 7 and config.distort_first_submap is False
-    apply_sim_profile(config, "exact")
-    assert dataclasses.replace(config, seed=0, distort_first_submap=True) == SimulatorConfig()
+def test_a_profile_fills_every_magnitude_not_set_explicitly_whatever_the_order():
+    """Setting ``profile`` on a config (the Python way, ``config.sim.profile = "vggt"``) applies it:
+    earlier it was recorded but ignored, and a run gave the exact profile's errors."""
+    config = SimulatorConfig(depth_noise=0.3, seed=7, distort_first_submap=False)
+    config.profile = "vggt"
+    resolved = config.resolved()
+    assert resolved.depth_noise == 0.3  # explicit, set before the profile: it still wins
+    assert resolved.camera_rotation_deg == SIM_PROFILE_VALUES["vggt"]["camera_rotation_deg"] > 0
+    assert resolved.focal_error == SIM_PROFILE_VALUES["vggt"]["focal_error"]
+    assert resolved.seed == 7 and resolved.distort_first_submap is False
+    assert SimulatedFrontend(config).config == resolved  # what the simulator runs with
+    apply_sim_profile(config, "exact")  # switching profile forgets the explicit magnitudes
+    assert dataclasses.replace(config.resolved(), seed=0, distort_first_submap=True) == SimulatorConfig().resolved()
     with pytest.raises(UserError, match="unknown simulator profile 'vgg'"):
         apply_sim_profile(config, "vgg")
+    config.profile = "vgg"
+    with pytest.raises(UserError, match="--sim-profile"):
+        config.validate()
     with pytest.raises(UserError, match="unknown simulator setting"):
         SimulatorConfig.from_profile("vggt", depth_nois=0.1)
 
 
-def test_config_file_profile_comes_before_its_other_keys():
+def test_a_run_records_the_magnitudes_it_used(tmp_path: Path, windows) -> None:
+    """The settled config (``sl4slam.resolve``), which summary.json records, holds the profile's
+    values, not ``None`` and not the defaults."""
+    from sl4slam.config import SLAMConfig
+    from sl4slam.resolve import resolve
+
+    config = SLAMConfig(frontend="simulated")
+    config.retrieval.kind = "none"
+    config.sim.profile = "vggt"
+    settled = config_to_dict(resolve(config).config)["sim"]
+    assert settled["profile"] == "vggt" and settled["focal_error"] == SIM_PROFILE_VALUES["vggt"]["focal_error"]
+    assert config.sim.focal_error is None  # the user's tree is left as given
+
+
+def test_config_file_profile_and_its_other_keys_in_any_order():
     # The explicit key is written first, yet it overrides the profile.
     config = config_from_dict({"sim": {"depth_noise": 0.1, "profile": "hard", "seed": 3}})
-    assert config.sim.profile == "hard" and config.sim.depth_noise == 0.1 and config.sim.seed == 3
-    assert config.sim.camera_rotation_deg == SIM_PROFILE_VALUES["hard"]["camera_rotation_deg"]
-    assert config_to_dict(config)["sim"]["profile"] == "hard"  # what summary.json records
+    resolved = config.sim.resolved()
+    assert config.sim.profile == "hard" and resolved.depth_noise == 0.1 and resolved.seed == 3
+    assert resolved.camera_rotation_deg == SIM_PROFILE_VALUES["hard"]["camera_rotation_deg"]
+    assert config_to_dict(config)["sim"]["profile"] == "hard"
     with pytest.raises(UserError, match="profile"):
-        config_from_dict({"sim": {"profile": "nope"}})
+        config_from_dict({"sim": {"profile": "nope"}}).validate()
 
 
-def test_sim_profile_flag_comes_before_every_explicit_setting(tmp_path: Path):
+def test_sim_profile_flag_and_explicit_settings(tmp_path: Path):
     parse = build_parser().parse_args
     config = config_from_args(parse(["run", "src", "--out", "o", "--sim-depth-warp", "0.2", "--sim-profile", "vggt"]))
-    assert config.sim.profile == "vggt" and config.sim.depth_warp == 0.2
-    assert config.sim.focal_error == SIM_PROFILE_VALUES["vggt"]["focal_error"]
+    resolved = config.sim.resolved()
+    assert config.sim.profile == "vggt" and resolved.depth_warp == 0.2
+    assert resolved.focal_error == SIM_PROFILE_VALUES["vggt"]["focal_error"]
 
     # The flag replaces the file's profile; the file's explicit settings and the flags still win over it.
     (tmp_path / "c.toml").write_text("[sim]\nperspective = 0.3\nprofile = 'vggt'\nseed = 2\n")
     config = config_from_args(parse(["run", "src", "--out", "o", "--config", str(tmp_path / "c.toml"),
                                      "--sim-shear", "0.0", "--sim-profile", "hard"]))
-    assert config.sim.profile == "hard" and config.sim.perspective == 0.3 and config.sim.seed == 2
-    assert config.sim.shear == 0.0 and config.sim.depth_warp == SIM_PROFILE_VALUES["hard"]["depth_warp"]
+    resolved = config.sim.resolved()
+    assert config.sim.profile == "hard" and resolved.perspective == 0.3 and resolved.seed == 2
+    assert resolved.shear == 0.0 and resolved.depth_warp == SIM_PROFILE_VALUES["hard"]["depth_warp"]
     (tmp_path / "c.json").write_text(json.dumps({"sim": {"profile": "vggt"}}))
     config = config_from_args(parse(["run", "src", "--out", "o", "--config", str(tmp_path / "c.json")]))
-    assert config.sim.profile == "vggt" and config.sim.depth_warp == SIM_PROFILE_VALUES["vggt"]["depth_warp"]
+    assert config.sim.profile == "vggt" and config.sim.resolved().depth_warp == SIM_PROFILE_VALUES["vggt"]["depth_warp"]
     with pytest.raises(SystemExit):
         parse(["run", "src", "--out", "o", "--sim-profile", "vgg"])
 

@@ -285,7 +285,7 @@ def test_bad_input_raises_user_error():
 def test_settings_come_from_a_config_file_tree():
     config = config_from_dict({"frontend": "simulated", "sim": {"perspective": 0.05, "depth_noise": 0, "seed": 4}})
     assert config.sim.perspective == 0.05 and config.sim.depth_noise == 0.0 and config.sim.seed == 4
-    defaults = SimulatorConfig()
+    defaults = SimulatorConfig().resolved()
     assert defaults.perspective == 0.0 and defaults.shear == 0.0 and defaults.scale == 0.0
     assert 0 < defaults.depth_noise < 0.05 and 0 < defaults.outlier_fraction < 0.1
 

@@ -17,10 +17,20 @@ from sl4slam.synthetic.world import camera_path
 from sl4slam.upgrade import (
     estimate_metric_upgrade,
     intrinsic_constraint_residuals,
-    upgrade_cameras,
     upgrade_graph_nodes,
-    upgrade_points,
 )
+
+
+def upgrade_cameras(P_world: np.ndarray, H_metric_world: np.ndarray) -> np.ndarray:
+    """Cameras ``(..., 3, 4)`` in the metric frame: ``P H^-1``."""
+    return np.asarray(P_world, dtype=np.float64) @ np.linalg.inv(np.asarray(H_metric_world, dtype=np.float64))
+
+
+def upgrade_points(X_world: np.ndarray, H_metric_world: np.ndarray) -> np.ndarray:
+    """Points in the metric frame: homogeneous ``(..., 4)`` -> ``H X``; Euclidean ``(..., 3)`` after division."""
+    X, H = np.asarray(X_world, dtype=np.float64), np.asarray(H_metric_world, dtype=np.float64)
+    return X @ H.T if X.shape[-1] == 4 else apply_transform(H, X)
+
 
 WIDTH, HEIGHT = 640, 480
 PP = np.array([(WIDTH - 1) / 2.0, (HEIGHT - 1) / 2.0])  # the synthetic world's convention

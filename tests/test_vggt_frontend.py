@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from sl4slam.config import VGGTConfig
+from sl4slam.config import ModelConfig
 from sl4slam.errors import MissingWeightsError, UserError
 from sl4slam.frontend.vggt import VGGTFrontend, resolve_compute_dtype, resolve_device
 from sl4slam.io import read_tum_trajectory
@@ -54,7 +54,7 @@ def tiny_model(tmp_path_factory) -> VGGT:
 
 
 def test_reconstruct_returns_the_model_outputs_on_its_grid(tiny_model):
-    frontend = VGGTFrontend(VGGTConfig(device="cpu"), model=tiny_model, with_points=True)
+    frontend = VGGTFrontend(ModelConfig(), model=tiny_model, with_points=True, device="cpu")
     assert isinstance(frontend, Frontend) and frontend.name == "vggt"
     frames = _frames(3, height=48, width=128)
     prediction = frontend.reconstruct(frames, submap_id=0)
@@ -88,7 +88,7 @@ def test_reconstruct_returns_the_model_outputs_on_its_grid(tiny_model):
 
 
 def test_pad_mode_and_no_points(tiny_model):
-    frontend = VGGTFrontend(VGGTConfig(device="cpu", preprocess_mode="pad"), model=tiny_model)
+    frontend = VGGTFrontend(ModelConfig(preprocess_mode="pad"), model=tiny_model, device="cpu")
     prediction = frontend.reconstruct(_frames(2, height=128, width=96), submap_id=3)
     assert prediction.depth.shape == (2, 518, 518) and prediction.points is None
     # Portrait 96x128 -> 392x518, centred with 63 white columns each side.
@@ -98,7 +98,7 @@ def test_pad_mode_and_no_points(tiny_model):
 
 def test_weights_are_loaded_from_a_file_on_first_use(tmp_path):
     path = make_random_checkpoint(tmp_path / "small.safetensors")
-    frontend = VGGTFrontend(VGGTConfig(device="cpu", weights=str(path)))
+    frontend = VGGTFrontend(ModelConfig(weights=str(path)), device="cpu")
     assert frontend._model is None  # nothing loaded before the first submap
     prediction = frontend.reconstruct(_frames(2, height=48), submap_id=0)
     assert frontend.model.config == SMALL_CONFIG
@@ -108,7 +108,7 @@ def test_weights_are_loaded_from_a_file_on_first_use(tmp_path):
 
 
 def test_missing_weights_fail_with_instructions(tmp_path):
-    frontend = VGGTFrontend(VGGTConfig(device="cpu", weights=str(tmp_path / "model.pt")))
+    frontend = VGGTFrontend(ModelConfig(weights=str(tmp_path / "model.pt")), device="cpu")
     with pytest.raises(MissingWeightsError, match="--weights PATH"):
         frontend.reconstruct(_frames(2), submap_id=0)
 
@@ -122,16 +122,16 @@ def test_device_and_dtype_resolution():
     with pytest.raises(UserError):
         resolve_compute_dtype("int4", cpu)
     with pytest.raises(UserError):
-        VGGTFrontend(VGGTConfig(device="cpu", preprocess_mode="stretch"))
+        VGGTFrontend(ModelConfig(preprocess_mode="stretch"), device="cpu")
 
 
 def test_a_match_layer_the_model_lacks_is_refused_when_the_loop_check_needs_it(tiny_model):
     """The attention loop check reads global layer ``match_layer`` (21 of VGGT-1B's 24); a smaller
     model without it is refused when the weights load, before any frame, naming the fix."""
     with pytest.raises(UserError, match="--match-layer 21 does not exist: the model has 4 global attention layers"):
-        VGGTFrontend(VGGTConfig(device="cpu"), model=tiny_model, match_scores=True)
-    VGGTFrontend(VGGTConfig(device="cpu"), model=tiny_model)  # no loop check: the layer is never read
-    VGGTFrontend(VGGTConfig(device="cpu", match_layer=3), model=tiny_model, match_scores=True)
+        VGGTFrontend(ModelConfig(), model=tiny_model, match_scores=True, device="cpu")
+    VGGTFrontend(ModelConfig(), model=tiny_model, device="cpu")  # no loop check: the layer is never read
+    VGGTFrontend(ModelConfig(match_layer=3), model=tiny_model, match_scores=True, device="cpu")
     if not torch.cuda.is_available():
         with pytest.raises(UserError, match="no CUDA"):
             resolve_device("cuda")
@@ -168,10 +168,10 @@ def test_a_run_with_garbage_model_output_completes(tmp_path, shared_dir):
         model.camera_head.pose_branch.fc2.bias[7:9] = 1.0
     weights = save_checkpoint(model.state_dict(), tmp_path / "garbage.safetensors", SMALL_CONFIG)
     config = SLAMConfig()
-    config.vggt.weights, config.vggt.device = str(weights), "cpu"
+    config.model.weights, config.device = str(weights), "cpu"
     config.submap.size = 2
     config.retrieval.kind, config.retrieval.tau_interval = "orb", 0
-    config.vggt.match_layer = SMALL_CONFIG.depth - 1  # the attention loop check reads the small model's last layer
+    config.model.match_layer = SMALL_CONFIG.depth - 1  # the attention loop check reads the small model's last layer
     summary = run_slam(shared_dir / "data" / "tum_rgbd_fr1_xyz_first37", tmp_path / "out", config, progress=False)
     assert summary["status"] == "complete" and summary["counts"]["keyframes"] >= 4
     edges = summary["edges"]

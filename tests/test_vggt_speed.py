@@ -10,7 +10,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from sl4slam.config import VGGTConfig
+from sl4slam.config import ModelConfig, SLAMConfig
 from sl4slam.errors import UserError
 from sl4slam.frontend.vggt import VGGTFrontend
 from sl4slam.models.vggt.memory import (
@@ -154,12 +154,14 @@ def test_memory_plan_names_the_largest_submap_that_fits():
 @pytest.mark.parametrize(
     "changes, flag",
     [({"max_memory_gb": -1.0}, "--max-memory"), ({"head_chunk_frames": 0}, "--head-chunk-frames"),
-     ({"dtype": "int4"}, "--dtype"), ({"dtype": "int8", "device": "cuda"}, "--dtype")],
+     ({"dtype": "int4"}, "--dtype")],
 )
 def test_config_validation(changes, flag):
     with pytest.raises(UserError, match=flag):
-        VGGTConfig(**changes).validate()
-    VGGTConfig(dtype="int8", max_memory_gb=6.0, head_chunk_frames=2).validate()
+        ModelConfig(**changes).validate()
+    ModelConfig(dtype="int8", max_memory_gb=6.0, head_chunk_frames=2).validate()
+    with pytest.raises(UserError, match="--dtype"):  # int8 is a CPU mode
+        SLAMConfig(device="cuda", model=ModelConfig(dtype="int8")).validate()
 
 
 SMALL = VGGTModelConfig(
@@ -181,16 +183,16 @@ def _small_model() -> VGGT:
 
 def test_frontend_int8_and_memory_budget():
     frames = _frames(3)
-    reference = VGGTFrontend(VGGTConfig(device="cpu", dtype="fp32"), model=_small_model()).reconstruct(frames, 0)
-    int8 = VGGTFrontend(VGGTConfig(device="cpu", dtype="int8"), model=_small_model())
+    reference = VGGTFrontend(ModelConfig(dtype="fp32"), model=_small_model(), device="cpu").reconstruct(frames, 0)
+    int8 = VGGTFrontend(ModelConfig(dtype="int8"), model=_small_model(), device="cpu")
     assert count_quantized_linears(int8.model) > 0
     prediction = int8.reconstruct(frames, 0)
     worst, median = relative_errors(torch.from_numpy(prediction.depth), torch.from_numpy(reference.depth))
     assert worst > 0 and median < 1e-2
     # A budget: the chunk follows it, and a submap that cannot fit is refused before any work.
     height, width = prediction.depth.shape[1:]
-    roomy = VGGTFrontend(VGGTConfig(device="cpu", max_memory_gb=64.0), model=_small_model())
+    roomy = VGGTFrontend(ModelConfig(max_memory_gb=64.0), model=_small_model(), device="cpu")
     assert roomy.head_chunk(3, height, width) == 3
-    tight = VGGTFrontend(VGGTConfig(device="cpu", max_memory_gb=0.1), model=_small_model())
+    tight = VGGTFrontend(ModelConfig(max_memory_gb=0.1), model=_small_model(), device="cpu")
     with pytest.raises(UserError, match="largest submap that fits is 0 frames"):
         tight.reconstruct(frames, 0)

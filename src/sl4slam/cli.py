@@ -88,38 +88,41 @@ def add_config_flags(parser: argparse.ArgumentParser, config: Any = None) -> Non
             else:
                 target = group
             dest = f"{name}.{f.name}" if name else f.name
-            help_text = (docs.get(f.name, "") + f" (default: {value})").strip().replace("%", "%%")
+            default = f"default: {value}" if value is not None else f"default: from the profile; exact: {section.field_default(f.name)}"
+            help_text = (docs.get(f.name, "") + f" ({default})").strip().replace("%", "%%")
             kwargs: dict[str, Any] = {"dest": dest, "default": argparse.SUPPRESS, "help": help_text}
-            if isinstance(value, bool):
+            typed = value if value is not None else section.field_default(f.name)
+            if isinstance(typed, bool):
                 kwargs["action"] = argparse.BooleanOptionalAction
             elif f.name in section.choices:
                 kwargs["choices"] = list(section.choices[f.name])
             else:
-                kwargs["type"] = _scalar_type(value)
+                kwargs["type"] = _scalar_type(typed)
                 kwargs["metavar"] = f.name.upper()
-            target.add_argument(section.flag(f.name), **kwargs)
+            target.add_argument(section.flag(f.name), *section.flag_aliases.get(f.name, ()), **kwargs)
     # advanced groups after the main ones, so `run --help` reads top-down
     parser._action_groups = [g for g in parser._action_groups if g not in advanced_groups] + advanced_groups
 
 
 def config_from_args(args: argparse.Namespace) -> SLAMConfig:
-    """Defaults, then ``--config FILE``, then explicit flags.
-
-    ``--sim-profile`` replaces the file's ``[sim] profile`` and, like it, is applied before every
-    explicit simulator setting (the file's and the flags'), whatever their order.
-    """
+    """Defaults, then ``--config FILE``, then explicit flags (``--sim-profile`` fills every simulator
+    magnitude that neither the file nor a flag sets)."""
     values = read_config_file(args.config) if getattr(args, "config", None) else {}
-    profile = vars(args).get("sim.profile")
-    if profile is not None and isinstance(values.get("sim", {}), dict):
-        values = {**values, "sim": {**values.get("sim", {}), "profile": profile}}
     config = config_from_dict(values, SLAMConfig())
     for dest, value in vars(args).items():
         if "." in dest:
             section, name = dest.split(".", 1)
             setattr(getattr(config, section), name, value)
-        elif dest in {f.name for f in dataclasses.fields(SLAMConfig)}:
-            setattr(config, dest, value)
+        elif dest in {f.name for f in dataclasses.fields(SLAMConfig)} and not dataclasses.is_dataclass(getattr(config, dest)):
+            setattr(config, dest, value)  # top-level settings (a verb's own positional SOURCE is not one)
     return config
+
+
+def _flag_of(dest: str) -> str:
+    """The command-line flag of a ``section.field`` destination."""
+    section, _, name = dest.rpartition(".")
+    owner = SLAMConfig() if not section else getattr(SLAMConfig(), section)
+    return owner.flag(name)
 
 
 # ---------------------------------------------------------------------- verbs
@@ -189,7 +192,9 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     from .evaluation import EvalSettings, evaluate
 
-    fixed_seeds = [f"--{'sim' if d == 'sim.seed' else 'ransac'}-seed" for d in ("sim.seed", "alignment.seed") if d in vars(args)]
+    from .evaluation.protocol import SEEDED_SETTINGS
+
+    fixed_seeds = [_flag_of(dest) for dest in SEEDED_SETTINGS if dest in vars(args)]
     if fixed_seeds:
         raise UserError(f"{' and '.join(fixed_seeds)} cannot be set here: run r uses seed r; choose the seeds with --runs")
     config = config_from_args(args)

@@ -3,9 +3,9 @@
 Defaults cite VGGT-SLAM (Maggio, Lim, Carlone, NeurIPS 2025), section 5.1 ("paper"), the authors'
 code ("reference code"), or a measurement of ours (named with the benchmark that made it). The
 command line is generated from this tree (``sl4slam.cli``) and the same tree can be read from a
-TOML or JSON file. Each section checks its own values in ``validate()``, which the pipeline calls
-before any frame is read; a bad value is one line that names the flag, the config-file key and the
-allowed range.
+TOML or JSON file. Each section checks its own values in ``validate()``; ``sl4slam.resolve.resolve``
+calls it once per run, before any frame is read, and settles every "auto" (the rules live there,
+not here); a bad value is one line that names the flag, the config-file key and the allowed range.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ class Section:
         section: the section's key in the tree (``[alignment]`` in a config file).
         flag_prefix: prefix of the section's command-line flags (``--ransac-...``).
         flag_names: per-field flag overrides (e.g. the paper's short names).
+        flag_aliases: per-field further flags that set the same field (older or shorter names).
         choices: per-field allowed values of string settings.
         advanced: fields listed under the section's "advanced" group of ``run --help``.
     """
@@ -34,6 +35,7 @@ class Section:
     section: ClassVar[str] = ""
     flag_prefix: ClassVar[str] = ""
     flag_names: ClassVar[dict[str, str]] = {}
+    flag_aliases: ClassVar[dict[str, tuple[str, ...]]] = {}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {}
     advanced: ClassVar[frozenset[str]] = frozenset()
 
@@ -54,6 +56,11 @@ class Section:
         if not (ok and finite):
             key = f"{self.section}.{name}" if self.section else name
             raise UserError(f"{self.flag(name)} (config key {key}) must be {allowed}, got {value!r}")
+
+    @classmethod
+    def field_default(cls, name: str) -> Any:
+        """The value field ``name`` has when not set (for help texts and flag types)."""
+        return getattr(cls(), name)
 
     def _require_choice(self, name: str) -> None:
         allowed = self.choices[name]
@@ -400,12 +407,6 @@ class BackendConfig(Section):
         self._require("graph", self.graph != "keyframe" or self.kind == "sl4",
                       "submap or auto with --backend sim3 (the keyframe graph is an SL(4) graph)")
 
-    @property
-    def design(self) -> str:
-        """The graph design a run uses: ``graph`` with "auto" resolved from ``kind``."""
-        if self.graph != "auto":
-            return self.graph
-        return "keyframe" if self.kind == "sl4" else "submap"
 
 
 @dataclass
@@ -413,6 +414,7 @@ class RetrievalConfig(Section):
     """Loop-closure retrieval (paper 4.3)."""
 
     section: ClassVar[str] = "retrieval"
+    flag_names: ClassVar[dict[str, str]] = {"seed": "--retrieval-seed"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {"kind": ("auto", "salad", "orb", "none")}
     advanced: ClassVar[frozenset[str]] = frozenset({
         "salad_image_size", "orb_features", "orb_candidates", "orb_ratio", "orb_max_hamming",
@@ -423,6 +425,8 @@ class RetrievalConfig(Section):
     when its weights are found locally (``salad_weights`` or the user cache), else ORB."""
     tau_interval: int = 2
     """Most recent submaps excluded from retrieval (paper: 2)."""
+    seed: int = 0
+    """Seed of the ORB retrieval's geometric verification (fundamental-matrix RANSAC)."""
     tau_desc: float = 0.8
     """SALAD only: accept when the L2 descriptor distance is below this (paper: 0.8)."""
     salad_weights: str | None = None
@@ -450,6 +454,7 @@ class RetrievalConfig(Section):
     def validate(self) -> None:
         super().validate()
         self._require("tau_interval", self.tau_interval >= 0, ">= 0")
+        self._require("seed", self.seed >= 0, ">= 0")
         self._require("tau_desc", self.tau_desc > 0, "a positive descriptor distance")
         self._require("salad_image_size", self.salad_image_size >= 14 and self.salad_image_size % 14 == 0,
                       "a positive multiple of 14 px (DINOv2 patches)")
@@ -530,9 +535,13 @@ class SimulatorConfig(Section):
     Every submap gets its own projective distortion ``H_s`` in SL(4) and scale gauge; every frame of
     every submap gets its own camera and focal error, depth noise, smooth depth warp, flying pixels at
     depth edges, outlier blobs and confidence. All of it is drawn from ``seed``, the submap id and the
-    frame indices, so a run is exactly reproducible. ``profile`` sets the defaults of all error
-    magnitudes at once (``SimulatorConfig.from_profile``, ``--sim-profile``, ``[sim] profile``);
-    explicit settings override it.
+    frame indices, so a run is exactly reproducible.
+
+    ``profile`` gives every error magnitude left at ``None`` its value (``--sim-profile``,
+    ``[sim] profile``, or ``config.sim.profile = "vggt"`` in Python); a magnitude set explicitly
+    overrides it, whatever the order. :meth:`resolved` is the copy with every magnitude filled in,
+    which the simulator reads and ``summary.json`` records. Each magnitude's "exact" value is given
+    in its description (:data:`SIM_PROFILE_VALUES` holds the others).
     """
 
     section: ClassVar[str] = "sim"
@@ -543,17 +552,17 @@ class SimulatorConfig(Section):
     """Error profile the settings started from: "exact" (each setting's own default: one exact SL(4)
     transform per submap, cameras exact, small depth noise), "vggt" (calibrated to published VGGT
     figures, cited in ``sl4slam.frontend.simulated``) or "hard" (the upper ends of those ranges, more
-    flying pixels and outliers). Applied before any explicit setting; recorded in summary.json."""
-    perspective: float = 0.0
+    flying pixels and outliers). Fills every magnitude not set explicitly; recorded in summary.json."""
+    perspective: float | None = None
     """Norm of the perspective row ``p`` of ``H_s`` (what Sim(3) cannot model), in units of
     1 / (the submap's mean point distance): a point at the mean distance has its homogeneous
     weight changed by up to this fraction. 0: none."""
-    shear: float = 0.0
+    shear: float | None = None
     """Spread of the shear / anisotropic stretch ``B`` of ``H_s`` (upper triangular, det 1):
     off-diagonal entries ~ N(0, shear^2), log stretches ~ N(0, shear^2) minus their mean. 0: none."""
-    scale: float = 0.0
+    scale: float | None = None
     """Standard deviation of the log of the per-submap global scale of ``H_s``. 0: none."""
-    gauge_scale_ratio: float = 1.0
+    gauge_scale_ratio: float | None = None
     """Scale gauge of each submap: its points and camera centres are multiplied by a factor drawn
     log-uniformly in [r^-1/2, r^1/2], so one window's scale relative to any other is within
     [1/r, r] (VGGT: ratios of 0.5 to 2 between consecutive windows are seen in practice, r = 2).
@@ -561,65 +570,65 @@ class SimulatorConfig(Section):
     normalize_scale: bool = True
     """Scale each submap so the mean distance of its valid true points to the first camera is 1,
     as VGGT normalizes its outputs; off: submaps keep metric units (before ``scale``)."""
-    camera_rotation_deg: float = 0.0
+    camera_rotation_deg: float | None = None
     """Per-frame camera rotation error inside a submap (all frames but the first, which stays
     [I | 0] as VGGT's does): std in degrees of each component of a rotation vector about the
     camera centre. A pair of frames then disagrees by about 2.2x this in median (VGGT on indoor
     video: 1-3 degrees median relative rotation error, Depth Anything 3's table). 0: none."""
-    camera_translation: float = 0.0
+    camera_translation: float | None = None
     """Per-frame camera centre error (all frames but the first): std of each coordinate as a
     fraction of the submap's mean true point distance. 0: none."""
-    focal_error: float = 0.0
+    focal_error: float | None = None
     """Per-frame focal error: fx and fy are multiplied by ``exp(focal_error * n)``, n ~ N(0, 1),
     about the principal point, which stays where it is (VGGT assumes the image centre; its focal
     length is off by up to about 7 %). 0: none."""
-    camera_window_frames: int = 100
+    camera_window_frames: int | None = None
     """Window length (frames) beyond which the camera rotation, translation and focal errors grow
     in proportion to the length (VGGT's quality falls as windows grow past about 100 frames)."""
-    depth_noise: float = 0.002
+    depth_noise: float | None = None
     """Relative depth noise sigma: depth is multiplied by ``exp(depth_noise * n)``, n ~ N(0, 1)
     per pixel, so the error grows with depth."""
-    depth_warp: float = 0.0
+    depth_warp: float | None = None
     """Smooth non-projective depth error per frame: depth is multiplied by ``exp(depth_warp * f)``
     with ``f`` a zero-mean, unit-variance smooth random field (VGGT's depth errors are mostly
     low-frequency; AbsRel 2-4 % indoors). 0: none."""
-    depth_warp_length: float = 0.3
+    depth_warp_length: float | None = None
     """Correlation length of the depth warp field as a fraction of the image width."""
-    frame_consistency: float = 0.0
+    frame_consistency: float | None = None
     """Share of the variance of a frame's focal error and depth warp that belongs to the frame
     itself, the same in every submap that contains it; the rest is drawn per submap. VGGT's depth
     and focal length come mostly from the image itself, so two windows sharing a frame predict it
     alike (the paper's RANSAC inlier threshold, 1 % of the scene scale between the shared frame's
     two predictions, presumes so). 0: independent per submap."""
-    unrelated_overlap: float = 0.0
+    unrelated_overlap: float | None = None
     """A frame that shares at most this fraction of its view with every other frame of its window
     (true geometry) is an unrelated image to the model, which still places it: at the pose of the
     window frame it looks most like, moved by ``unrelated_jitter`` (VGGT has no "no overlap" output;
     this is what makes a wrong-place loop candidate dangerous). 0: every frame keeps its true pose."""
-    unrelated_jitter: float = 0.2
+    unrelated_jitter: float | None = None
     """Spread of that placement: rotation ~ N(0, (unrelated_jitter rad)^2) per axis, centre moved by
     ~ N(0, (unrelated_jitter d)^2) per axis (d the submap's mean point distance)."""
-    flying_px: float = 0.0
+    flying_px: float | None = None
     """Flying pixels: within this many px of a depth discontinuity, the depth is interpolated
     between the local foreground and background (a random mix per pixel, smooth over the band),
     with the low confidence of outliers (``outlier_confidence``), as a regression head blurs
     depth edges. 0: none."""
-    flying_jump: float = 0.1
+    flying_jump: float | None = None
     """Relative depth jump between two adjacent pixels (larger / smaller - 1) that makes a depth
     discontinuity for ``flying_px``; smooth surfaces, even at grazing angles, stay below it."""
-    outlier_fraction: float = 0.02
+    outlier_fraction: float | None = None
     """Fraction of each frame's pixels inside outlier blobs (spatially coherent errors)."""
-    outlier_blob_px: float = 12.0
+    outlier_blob_px: float | None = None
     """Typical outlier blob radius in px (correlation length of the blob field)."""
-    outlier_magnitude: float = 0.3
+    outlier_magnitude: float | None = None
     """Relative depth error inside outlier blobs: depth is multiplied by ``(1 + m)^s`` with
     ``m`` this value and ``s`` in (-1, 1) a smooth field, mostly near -1 or +1."""
-    confidence_scale: float = 5.0
+    confidence_scale: float | None = None
     """Confidence of a clean pixel at the submap's median depth is about ``1 + confidence_scale``;
     it falls inversely with depth (VGGT's confidence is ``1 + exp(x)`` >= 1)."""
-    confidence_jitter: float = 0.2
+    confidence_jitter: float | None = None
     """Log-normal spread of the confidence of clean pixels (so it is not a function of depth alone)."""
-    outlier_confidence: float = 0.02
+    outlier_confidence: float | None = None
     """Factor on the confidence excess (confidence - 1) inside outlier blobs and on flying pixels;
     pixels with no measured depth (filled from their nearest neighbour) get confidence exactly 1."""
     distort_first_submap: bool = True
@@ -629,20 +638,12 @@ class SimulatorConfig(Section):
     seed: int = 0
     """Seed (>= 0); ``H_s`` and the gauge are drawn from (seed, submap id), per-frame errors from
     (seed, submap id, frame index)."""
-    false_loop_rate: float = 0.0
-    """Fraction of the retrieval's loop proposals replaced by wrong places (``sl4slam.retrieval.false_loops``),
-    to measure the loop checks. 0: off."""
-    false_loop_min_distance: float = 1.0
-    """A wrong place is a keyframe at least this far (metres) from the query's true position ..."""
-    false_loop_min_angle: float = 30.0
-    """... or whose true viewing direction differs by at least this many degrees ..."""
-    false_loop_max_overlap: float = 0.05
-    """... and which sees at most this fraction of what the query sees (else it is a true revisit
-    seen from elsewhere, which a frontend reconstructs correctly)."""
-
     def validate(self) -> None:
         super().validate()
         self._require("profile", self.profile in SIM_PROFILES, "one of " + ", ".join(SIM_PROFILES))
+        self.resolved()._check_magnitudes()
+
+    def _check_magnitudes(self) -> None:
         checks = [
             ("perspective", self.perspective >= 0, ">= 0"),
             ("shear", self.shear >= 0, ">= 0"),
@@ -670,21 +671,27 @@ class SimulatorConfig(Section):
         ]
         for name, ok, allowed in checks:
             self._require(name, bool(ok), allowed)
-        self._require("false_loop_rate", 0 <= self.false_loop_rate <= 1, "in [0, 1]")
-        self._require("false_loop_min_distance", self.false_loop_min_distance >= 0, ">= 0 m")
-        self._require("false_loop_min_angle", 0 <= self.false_loop_min_angle <= 180, "in [0, 180] degrees")
-        self._require("false_loop_max_overlap", 0 <= self.false_loop_max_overlap <= 1, "in [0, 1]")
 
     @classmethod
     def from_profile(cls, profile: str, **overrides: Any) -> "SimulatorConfig":
-        """Settings of ``profile`` with ``overrides`` on top (the Python form of ``--sim-profile``)."""
-        config = cls()
-        apply_sim_profile(config, profile)
-        for key, value in overrides.items():
-            if key not in {f.name for f in dataclasses.fields(cls)} or key == "profile":
-                raise UserError(f"unknown simulator setting '{key}'")
-            setattr(config, key, value)
-        return config
+        """Settings of ``profile`` with ``overrides`` on top (the same as ``SimulatorConfig(profile=...,
+        **overrides)``, with a clear error for an unknown setting)."""
+        names = {f.name for f in dataclasses.fields(cls)} - {"profile"}
+        unknown = sorted(set(overrides) - names)
+        if unknown:
+            raise UserError(f"unknown simulator setting '{unknown[0]}'")
+        profile_values(profile)
+        return cls(profile=profile, **overrides)
+
+    def resolved(self) -> "SimulatorConfig":
+        """A copy with every magnitude left at ``None`` taken from :attr:`profile`."""
+        values = profile_values(self.profile)
+        return dataclasses.replace(self, **{name: values[name] for name in _PROFILED if getattr(self, name) is None})
+
+    @classmethod
+    def field_default(cls, name: str) -> Any:
+        """What a magnitude left at ``None`` means under the "exact" profile (for help texts and types)."""
+        return SIM_EXACT.get(name, getattr(cls(), name))
 
 
 # Settings a profile sets; the others (seed, normalize_scale, distort_first_submap) say how to run.
@@ -696,8 +703,33 @@ _PROFILED = (
     "outlier_magnitude", "confidence_scale", "confidence_jitter", "outlier_confidence",
 )
 
+SIM_EXACT: dict[str, Any] = {
+    "perspective": 0.0,
+    "shear": 0.0,
+    "scale": 0.0,
+    "gauge_scale_ratio": 1.0,
+    "camera_rotation_deg": 0.0,
+    "camera_translation": 0.0,
+    "focal_error": 0.0,
+    "camera_window_frames": 100,
+    "depth_noise": 0.002,
+    "depth_warp": 0.0,
+    "depth_warp_length": 0.3,
+    "frame_consistency": 0.0,
+    "unrelated_overlap": 0.0,
+    "unrelated_jitter": 0.2,
+    "flying_px": 0.0,
+    "flying_jump": 0.1,
+    "outlier_fraction": 0.02,
+    "outlier_blob_px": 12.0,
+    "outlier_magnitude": 0.3,
+    "confidence_scale": 5.0,
+    "confidence_jitter": 0.2,
+    "outlier_confidence": 0.02,
+}
+"""The "exact" profile: one exact SL(4) transform per submap, cameras exact, small depth noise."""
+
 SIM_PROFILE_VALUES: dict[str, dict[str, Any]] = {
-    # The defaults above, bit for bit.
     "exact": {},
     # VGGT on indoor video; each value's source is in sl4slam.frontend.simulated's docstring,
     # the resulting statistics are measured by tests/test_sim_profile.py.
@@ -713,66 +745,173 @@ SIM_PROFILE_VALUES: dict[str, dict[str, Any]] = {
         unrelated_overlap=0.1, flying_px=3.0, outlier_fraction=0.05, outlier_magnitude=0.5,
     ),
 }
-"""Settings of each profile that differ from the defaults (``exact`` is the defaults)."""
+"""Settings of each profile that differ from :data:`SIM_EXACT`."""
 
 
-def apply_sim_profile(sim: SimulatorConfig, profile: str) -> SimulatorConfig:
-    """Set every error magnitude of ``sim`` to ``profile``'s value (in place; returns ``sim``).
-
-    Settings the profile does not name get their default, so applying a profile undoes any earlier
-    setting: apply it first, then explicit settings. ``seed``, ``normalize_scale`` and
-    ``distort_first_submap`` are left alone.
-    """
+def profile_values(profile: str) -> dict[str, Any]:
+    """Every error magnitude of ``profile`` (``UserError`` for an unknown one)."""
     if not isinstance(profile, str) or profile not in SIM_PROFILES:
         raise UserError(f"unknown simulator profile {profile!r} (--sim-profile / [sim] profile); use one of "
                         f"{', '.join(SIM_PROFILES)}")
-    defaults = SimulatorConfig()
+    return {**SIM_EXACT, **SIM_PROFILE_VALUES[profile]}
+
+
+def apply_sim_profile(sim: SimulatorConfig, profile: str) -> SimulatorConfig:
+    """Switch ``sim`` to ``profile`` and forget every explicit error magnitude (in place; returns
+    ``sim``), so set explicit values after it. ``seed``, ``normalize_scale`` and
+    ``distort_first_submap`` are left alone."""
+    profile_values(profile)
     for name in _PROFILED:
-        setattr(sim, name, SIM_PROFILE_VALUES[profile].get(name, getattr(defaults, name)))
+        setattr(sim, name, None)
     sim.profile = profile
     return sim
 
 
 @dataclass
-class VGGTConfig(Section):
-    """VGGT frontend."""
+class ModelConfig(Section):
+    """The feed-forward model of the frontend (``--model``): its weights and how it computes.
 
-    section: ClassVar[str] = "vggt"
+    Settings marked "VGGT" or "Depth Anything 3" apply to that model only; the others to every
+    model (``sl4slam models`` lists them)."""
+
+    section: ClassVar[str] = "model"
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
-        "dtype": ("auto", "fp32", "bf16", "fp16", "int8"), "preprocess_mode": ("crop", "pad")}
+        "dtype": ("auto", "fp32", "bf16", "fp16", "int8"), "preprocess_mode": ("crop", "pad"),
+        "cameras": ("head", "rays")}
     flag_names: ClassVar[dict[str, str]] = {"max_memory_gb": "--max-memory"}
-    advanced: ClassVar[frozenset[str]] = frozenset({"match_layer", "head_chunk_frames"})
+    advanced: ClassVar[frozenset[str]] = frozenset({"match_layer", "head_chunk_frames", "cameras"})
 
-    weights: str = "facebook/VGGT-1B"
-    """Local ``.pt`` / ``.safetensors`` file or Hugging Face hub id (model.pt)."""
-    device: str = "auto"
-    """"auto" (CUDA when available), "cpu", "cuda" or "cuda:N"."""
+    weights: str = "auto"
+    """Local ``.pt`` / ``.safetensors`` file, a folder holding one, or a Hugging Face hub id
+    (``owner/name`` or ``owner/name:file``); "auto": the model's released weights (VGGT-1B:
+    facebook/VGGT-1B; ``sl4slam models`` lists every model's)."""
     dtype: str = "auto"
     """"auto" (bf16 on GPUs that support it, else fp16; fp32 on CPU), "fp32", "bf16", "fp16", or
-    "int8" (CPU: int8 linear layers in the aggregator; measured speed and error in
+    "int8" (VGGT on a CPU: int8 linear layers in the aggregator; measured speed and error in
     benchmarks/results/vggt.md)."""
     preprocess_mode: str = "crop"
     """VGGT preprocessing: "crop" (width 518) or "pad" (square 518)."""
     max_memory_gb: float = 0.0
-    """Memory budget of a VGGT forward in GiB (CPU: resident size; GPU: allocated memory), 0: no
-    limit. Picks the dense heads' chunk size per submap and refuses a submap that cannot fit."""
+    """Memory budget of a model forward in GiB (CPU: resident size; GPU: allocated memory), 0: no
+    limit. VGGT: picks the dense heads' chunk size per submap and refuses a submap that cannot fit."""
     head_chunk_frames: int = 8
-    """Frames the dense heads decode at once (reference VGGT: 8); the most --max-memory may pick."""
+    """VGGT: frames the dense heads decode at once (reference VGGT: 8); the most --max-memory may pick."""
     match_layer: int = 21
-    """Global-attention block (0-based) whose attention gives the loop check's image-match ratio
+    """VGGT: global-attention block (0-based) whose attention gives the loop check's image-match ratio
     (VGGT-SLAM 2.0: 21, the 22nd of VGGT-1B's 24; ``sl4slam.models.vggt.attention``)."""
+    cameras: str = "head"
+    """Depth Anything 3: where the cameras come from: "head" (its camera decoder, the authors'
+    default) or "rays" (recovered from its ray map)."""
 
     def validate(self) -> None:
         super().validate()
-        self._require("weights", bool(self.weights.strip()), "a file path or a Hugging Face hub id")
+        self._require("weights", bool(self.weights.strip()), "a file path, a Hugging Face hub id, or auto")
         self._require("match_layer", self.match_layer >= 0, ">= 0")
-        device_ok = self.device in ("auto", "cpu", "cuda") or (
-            self.device.startswith("cuda:") and self.device[5:].isdigit())
-        self._require("device", device_ok, "auto, cpu, cuda or cuda:N")
         self._require("max_memory_gb", self.max_memory_gb >= 0, ">= 0 GiB (0: no limit)")
         self._require("head_chunk_frames", self.head_chunk_frames >= 1, "at least 1 frame")
-        self._require("dtype", not (self.dtype == "int8" and self.device.startswith("cuda")),
-                      "auto, fp32, bf16 or fp16 on a GPU (int8 runs on the CPU only)")
+
+
+@dataclass
+class SourceConfig(Section):
+    """Which input frames a run reads (applied by the source, ``sl4slam.io.open_source``)."""
+
+    section: ClassVar[str] = "source"
+
+    stride: int = 1
+    """Use every n-th input frame."""
+    max_frames: int = 0
+    """Stop after this many input frames (after the stride; 0: all)."""
+
+    def validate(self) -> None:
+        super().validate()
+        self._require("max_frames", self.max_frames >= 0, ">= 0 (0: all)")
+        self._require("stride", self.stride >= 1, "at least 1")
+
+
+@dataclass
+class FalseLoopConfig(Section):
+    """Wrong places injected into the retrieval's loop proposals, to measure the loop checks
+    (``sl4slam.retrieval.false_loops``; needs ground-truth poses and depth)."""
+
+    section: ClassVar[str] = "false_loops"
+    flag_prefix: ClassVar[str] = "false-loop-"
+    flag_names: ClassVar[dict[str, str]] = {"rate": "--false-loop-rate", "seed": "--false-loop-seed"}
+    flag_aliases: ClassVar[dict[str, tuple[str, ...]]] = {
+        "rate": ("--sim-false-loop-rate",), "min_distance": ("--sim-false-loop-min-distance",),
+        "min_angle": ("--sim-false-loop-min-angle",), "max_overlap": ("--sim-false-loop-max-overlap",)}
+    advanced: ClassVar[frozenset[str]] = frozenset({"min_distance", "min_angle", "max_overlap", "seed"})
+
+    rate: float = 0.0
+    """Fraction of the retrieval's loop proposals replaced by wrong places. 0: off."""
+    min_distance: float = 1.0
+    """A wrong place is a keyframe at least this far (metres) from the query's true position ..."""
+    min_angle: float = 30.0
+    """... or whose true viewing direction differs by at least this many degrees ..."""
+    max_overlap: float = 0.05
+    """... and which sees at most this fraction of what the query sees (else it is a true revisit
+    seen from elsewhere, which a frontend reconstructs correctly)."""
+    seed: int = 0
+    """Seed of which proposals are replaced and by which wrong place."""
+
+    def validate(self) -> None:
+        super().validate()
+        self._require("rate", 0 <= self.rate <= 1, "in [0, 1]")
+        self._require("min_distance", self.min_distance >= 0, ">= 0 m")
+        self._require("min_angle", 0 <= self.min_angle <= 180, "in [0, 180] degrees")
+        self._require("max_overlap", 0 <= self.max_overlap <= 1, "in [0, 1]")
+        self._require("seed", self.seed >= 0, ">= 0")
+
+
+@dataclass
+class LocalizationConfig(Section):
+    """Poses of every frame (``--all-frames``, ``sl4slam.localize``): tracking into the nearest keyframe
+    and PnP against its points (defaults: OpenCV's and our measurements on the synthetic world and
+    TUM fr1/xyz, benchmarks/results/localize.md)."""
+
+    section: ClassVar[str] = "localize"
+    flag_prefix: ClassVar[str] = "localize-"
+    advanced: ClassVar[frozenset[str]] = frozenset({
+        "max_corners", "corner_quality", "corner_min_distance", "lk_window", "lk_levels", "max_round_trip_px",
+        "ransac_threshold_px", "ransac_iterations", "min_inliers", "min_inlier_ratio", "seed"})
+
+    max_corners: int = 500
+    """Shi-Tomasi corners per keyframe: a few hundred PnP inliers pin a pose; tracking cost grows
+    linearly with the corners."""
+    corner_quality: float = 0.01
+    """Shi-Tomasi quality level (as the keyframe selector)."""
+    corner_min_distance: float = 5.0
+    """Minimum spacing of corners, px on the keyframe grid."""
+    lk_window: int = 15
+    """Lucas-Kanade window, px: tracks travel a few px between neighbouring frames, so a smaller
+    window than the keyframe selector's 21 suffices and costs half as much."""
+    lk_levels: int = 3
+    """Lucas-Kanade pyramid levels above the full image (as the keyframe selector)."""
+    max_round_trip_px: float = 1.0
+    """Forward-backward tracking error above which a track is dropped."""
+    ransac_threshold_px: float = 2.0
+    """PnP RANSAC inlier threshold, px."""
+    ransac_iterations: int = 200
+    """PnP RANSAC hypotheses at most."""
+    min_inliers: int = 15
+    """Fewer PnP inliers than this is a failed localization."""
+    min_inlier_ratio: float = 0.3
+    """A pose whose inliers are fewer than this fraction of the tracks is a failed localization."""
+    seed: int = 0
+    """Seed of OpenCV's RANSAC (combined with the frame index)."""
+
+    def validate(self) -> None:
+        super().validate()
+        self._require("max_corners", self.max_corners >= 4, "at least 4")
+        self._require("min_inliers", self.min_inliers >= 4, "at least 4")
+        self._require("corner_quality", 0 < self.corner_quality < 1, "in (0, 1)")
+        self._require("corner_min_distance", self.corner_min_distance >= 0, ">= 0 px")
+        self._require("lk_window", self.lk_window >= 3, "at least 3 px")
+        self._require("lk_levels", self.lk_levels >= 0, ">= 0")
+        self._require("ransac_threshold_px", self.ransac_threshold_px > 0, "a positive distance in px")
+        self._require("max_round_trip_px", self.max_round_trip_px > 0, "a positive distance in px")
+        self._require("ransac_iterations", self.ransac_iterations >= 1, "at least 1")
+        self._require("min_inlier_ratio", 0 <= self.min_inlier_ratio <= 1, "in [0, 1]")
+        self._require("seed", self.seed >= 0, ">= 0")
 
 
 @dataclass
@@ -780,12 +919,15 @@ class OutputConfig(Section):
     """What a run writes, and how it reports."""
 
     section: ClassVar[str] = "output"
-    advanced: ClassVar[frozenset[str]] = frozenset({"checkpoint_seconds", "progress_every"})
+    flag_names: ClassVar[dict[str, str]] = {"seed": "--map-seed"}
+    advanced: ClassVar[frozenset[str]] = frozenset({"checkpoint_seconds", "progress_every", "seed"})
 
     voxel_size: float = 0.0
     """Voxel downsampling of ``map.ply`` in world units (0: off)."""
     max_map_points: int = 2_000_000
-    """Cap on points written to ``map.ply`` (evenly subsampled, seeded)."""
+    """Cap on points written to ``map.ply`` (subsampled at random, seeded by ``seed``)."""
+    seed: int = 0
+    """Seed of the map's subsampling to ``max_map_points``."""
     save_keyframe_points: bool = True
     """Write per-keyframe world points and masks for dense evaluation and exports."""
     cache_frontend: bool = False
@@ -801,6 +943,7 @@ class OutputConfig(Section):
         super().validate()
         self._require("voxel_size", self.voxel_size >= 0, ">= 0 world units (0: off)")
         self._require("max_map_points", self.max_map_points >= 1, "at least 1")
+        self._require("seed", self.seed >= 0, ">= 0")
         self._require("checkpoint_seconds", self.checkpoint_seconds >= 0, ">= 0 s")
         self._require("progress_every", self.progress_every >= 1, "at least 1")
 
@@ -925,81 +1068,56 @@ class UpgradeConfig(Section):
 
 @dataclass
 class SLAMConfig(Section):
-    """Everything a run needs."""
+    """Everything a run needs. ``sl4slam.resolve.resolve`` checks it once and settles every "auto"."""
 
-    choices: ClassVar[dict[str, tuple[str, ...]]] = {"frontend": ("vggt", "simulated")}
+    flag_names: ClassVar[dict[str, str]] = {"frontend": "--frontend"}
+    flag_aliases: ClassVar[dict[str, tuple[str, ...]]] = {"frontend": ("--model",)}
     advanced: ClassVar[frozenset[str]] = frozenset({"max_frontend_failures"})
 
     frontend: str = "vggt"
-    """"vggt" or "simulated" (needs RGB-D frames with ground-truth poses)."""
-    max_frames: int = 0
-    """Stop after this many input frames (0: all)."""
-    stride: int = 1
-    """Use every n-th input frame."""
+    """The frontend that reconstructs each submap: a model ("vggt", "pi3", "pi3x", "da3-small",
+    "da3-base", "da3-large", "da3-giant"; ``sl4slam models`` lists them with their weights and
+    licences), "simulated" (VGGT-like submaps from an RGB-D sequence's ground truth), or a model's
+    weights (a hub id or a file), whose model is recognized. VGGT-1B is the paper's."""
+    device: str = "auto"
+    """Where the models run (the frontend's and SALAD's): "auto" (CUDA when available), "cpu",
+    "cuda" or "cuda:N"."""
     max_frontend_failures: int = 3
     """A submap on which the frontend fails (an exception, or non-finite output) is skipped; this
     many failures in a row end the run (with its outputs written): the frontend is broken, not the
     frames."""
+    source: SourceConfig = field(default_factory=SourceConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     submap: SubmapConfig = field(default_factory=SubmapConfig)
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
     loops: LoopConfig = field(default_factory=LoopConfig)
+    false_loops: FalseLoopConfig = field(default_factory=FalseLoopConfig)
     sim: SimulatorConfig = field(default_factory=SimulatorConfig)
-    vggt: VGGTConfig = field(default_factory=VGGTConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     upgrade: UpgradeConfig = field(default_factory=UpgradeConfig)
+    localize: LocalizationConfig = field(default_factory=LocalizationConfig)
 
     def validate(self) -> None:
-        """Check every section, then the settings that depend on each other."""
+        """Check every section, then the settings that depend on each other (the frontend's name
+        and the "auto" rules are checked by ``sl4slam.resolve.resolve``)."""
         super().validate()
-        self._require("max_frames", self.max_frames >= 0, ">= 0 (0: all)")
-        self._require("stride", self.stride >= 1, "at least 1")
+        self._require("frontend", bool(self.frontend.strip()), "a model name, simulated, or a model's weights")
+        device_ok = self.device in ("auto", "cpu", "cuda") or (self.device.startswith("cuda:") and self.device[5:].isdigit())
+        self._require("device", device_ok, "auto, cpu, cuda or cuda:N")
         self._require("max_frontend_failures", self.max_frontend_failures >= 1, "at least 1")
         for section in sections(self):
             section.validate()
-        model = alignment_model(self)
-        if self.backend.kind == "sim3" and model in ("sl4", "calibration", "hybrid"):
-            raise UserError(f"--alignment {model} measures projective transforms, which a Sim(3) graph cannot hold; "
-                            "use --alignment sim3-points or sim3-cameras with --backend sim3")
+        if self.model.dtype == "int8" and self.device.startswith("cuda"):
+            raise UserError("--dtype (config key model.dtype) must be auto, fp32, bf16 or fp16 on a GPU "
+                            "(int8 runs on the CPU only), got 'int8'")
 
 
 def sections(config: SLAMConfig) -> list[Section]:
     """The sections of ``config`` in tree order."""
     return [getattr(config, f.name) for f in dataclasses.fields(config) if isinstance(getattr(config, f.name), Section)]
-
-
-def alignment_model(config: SLAMConfig) -> str:
-    """The alignment model a run uses ("auto" resolved from the graph's group)."""
-    if config.alignment.model != "auto":
-        return config.alignment.model
-    if config.backend.kind == "sim3":
-        return "sim3-cameras"
-    return "calibration" if config.backend.design == "keyframe" else "sl4"
-
-
-def metric_upgrade_on(config: SLAMConfig) -> bool:
-    """Whether a run ends with the metric upgrade ("auto" resolved from the graph design)."""
-    if config.upgrade.mode != "auto":
-        return config.upgrade.mode == "on"
-    return config.backend.kind == "sl4" and config.backend.design == "submap"
-
-
-def completes_links(config: SLAMConfig) -> bool:
-    """Whether fallback links are completed from the cameras (``UpgradeConfig.complete_links``): only
-    where the run ends with the metric upgrade, on SL(4) links."""
-    return config.upgrade.complete_links and config.backend.kind == "sl4" and metric_upgrade_on(config)
-
-
-def attention_check(config: SLAMConfig) -> bool:
-    """Whether loops pass the attention check ("auto" resolved from the graph design; never without
-    retrieval, which is where loops come from)."""
-    if config.retrieval.kind == "none":
-        return False
-    if config.loops.verify_attention != "auto":
-        return config.loops.verify_attention == "on"
-    return config.backend.design == "keyframe"
 
 
 def config_to_dict(config: Any) -> dict:
@@ -1018,27 +1136,49 @@ def _apply(target: Any, values: dict, where: str) -> None:
                 raise UserError(f"setting '{where}{key}' must be a table/object of settings")
             _apply(current, value, f"{where}{key}.")
         else:
-            if current is not None and value is not None and not isinstance(value, type(current)):
-                if isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool):
+            expected = current if current is not None else type(target).field_default(key)
+            if expected is not None and value is not None and not isinstance(value, type(expected)):
+                if isinstance(expected, float) and isinstance(value, int) and not isinstance(value, bool):
                     value = float(value)
                 else:
                     raise UserError(
-                        f"setting '{where}{key}' must be {type(current).__name__}, got {value!r}"
+                        f"setting '{where}{key}' must be {type(expected).__name__}, got {value!r}"
                     )
             setattr(target, key, value)
 
 
-def config_from_dict(values: dict, base: SLAMConfig | None = None) -> SLAMConfig:
-    """Overlay ``values`` (nested dict) on ``base`` (default: the defaults).
+# Settings that moved: (old table, old key) -> (new table, new key); "" is the top level.
+_MOVED = {
+    ("", "stride"): ("source", "stride"), ("", "max_frames"): ("source", "max_frames"),
+    ("vggt", "device"): ("", "device"),
+    **{("vggt", key): ("model", key) for key in ("weights", "dtype", "preprocess_mode", "max_memory_gb",
+                                                 "head_chunk_frames", "match_layer")},
+    **{("sim", f"false_loop_{key}"): ("false_loops", key) for key in ("rate", "min_distance", "min_angle", "max_overlap")},
+}
 
-    A ``profile`` key of the ``sim`` table is applied before the table's other keys, whatever
-    their order, so explicit simulator settings override the profile's.
-    """
+
+def _move_renamed(values: dict) -> dict:
+    """``values`` with settings of earlier releases (``[vggt] weights``, top-level ``stride``,
+    ``[sim] false_loop_rate`` ...) under their current keys; the current key wins if both are given."""
+    moved = {key: dict(value) if isinstance(value, dict) else value for key, value in values.items()}
+    for (old_table, old_key), (new_table, new_key) in _MOVED.items():
+        old = moved if not old_table else moved.get(old_table)
+        if not isinstance(old, dict) or old_key not in old:
+            continue
+        value = old.pop(old_key)
+        new = moved if not new_table else moved.setdefault(new_table, {})
+        if isinstance(new, dict):
+            new.setdefault(new_key, value)
+    if isinstance(moved.get("vggt"), dict) and not moved["vggt"]:
+        del moved["vggt"]
+    return moved
+
+
+def config_from_dict(values: dict, base: SLAMConfig | None = None) -> SLAMConfig:
+    """Overlay ``values`` (nested dict) on ``base`` (default: the defaults); keys of earlier
+    releases are read under their current names."""
     config = base if base is not None else SLAMConfig()
-    sim_values = values.get("sim")
-    if isinstance(sim_values, dict) and "profile" in sim_values:
-        apply_sim_profile(config.sim, sim_values["profile"])
-    _apply(config, values, "")
+    _apply(config, _move_renamed(values), "")
     return config
 
 

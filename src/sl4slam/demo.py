@@ -43,28 +43,24 @@ def demo_config(backend: str, perspective: float, retrieval: str = "orb") -> SLA
 
 
 def run_demo(out_dir: Path, frames: int = 600, perspective: float = 0.2, progress: bool = True) -> dict:
-    from .frontend import make_frontend
     from .io import open_source
-    from .outputs import plot_trajectories, write_outputs
     from .pipeline import SLAMPipeline
-    from .retrieval import make_retrieval
+    from .resolve import resolve
+    from .result.outputs import compute_ate, plot_trajectories, write_outputs
 
     sequence = synthetic_world(frames)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows, curves, gt = [], {}, None
     for backend in ("sl4", "sim3"):
-        config = demo_config(backend, perspective)
-        source = open_source(str(sequence))
+        resolved = resolve(demo_config(backend, perspective))
+        source = open_source(str(sequence), resolved.config.source)
         start = time.perf_counter()
-        pipeline = SLAMPipeline(config, make_frontend(config), make_retrieval(config.retrieval))
-        result = pipeline.run(source, progress=progress)
+        result = SLAMPipeline(resolved).run(source, progress=progress)
         seconds = time.perf_counter() - start
-        summary = write_outputs(result, out_dir / backend, config, source_name="synthetic world")
+        summary = write_outputs(result, out_dir / backend, resolved, source_name="synthetic world")
         ate = summary["ate"]["rmse"]
         rows.append((backend, ate, summary["counts"]["keyframes"], summary["counts"]["submaps"],
                      summary["counts"]["loops"], summary["counts"]["fallbacks"], seconds))
-        from .outputs import compute_ate
-
         aligned = compute_ate(result)
         curves[{"sl4": "SL(4)", "sim3": "Sim(3)"}[backend]] = aligned.positions_aligned
         gt = aligned.positions_gt

@@ -37,8 +37,8 @@ from scipy.spatial.transform import Rotation
 
 from .errors import UserError
 from .geometry import se3_inverse
-from .outputs import atomic_write_bytes, write_ply
-from .results import KeyframeData, KeyframeRecord, RunResult, load_result
+from .result.outputs import atomic_write_bytes, write_ply
+from .result.reading import KeyframeData, KeyframeRecord, RunResult, load_result
 
 FORMATS = ("colmap", "nerfstudio", "ply")
 PINHOLE_MODEL_ID = 1  # COLMAP's camera model id for PINHOLE (fx, fy, cx, cy)

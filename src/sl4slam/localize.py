@@ -30,53 +30,16 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
 
+from .config import LocalizationConfig
 from .errors import UserError
 from .geometry import decompose_projection, se3_inverse, to_4x4
+from .progress import Progress
 from .types import Frame
-
-
-@dataclass
-class LocalizationConfig:
-    """Settings of the all-frame localization (defaults: OpenCV's and our measurements on the
-    synthetic world and TUM fr1/xyz, benchmarks/results/localize.md)."""
-
-    max_corners: int = 500
-    """Shi-Tomasi corners per keyframe: a few hundred PnP inliers pin a pose; tracking cost grows
-    linearly with the corners."""
-    corner_quality: float = 0.01
-    """Shi-Tomasi quality level (as the keyframe selector)."""
-    corner_min_distance: float = 5.0
-    """Minimum spacing of corners, px on the keyframe grid."""
-    lk_window: int = 15
-    """Lucas-Kanade window, px: tracks travel a few px between neighbouring frames, so a smaller
-    window than the keyframe selector's 21 suffices and costs half as much."""
-    lk_levels: int = 3
-    """Lucas-Kanade pyramid levels above the full image (as the keyframe selector)."""
-    max_round_trip_px: float = 1.0
-    """Forward-backward tracking error above which a track is dropped."""
-    ransac_threshold_px: float = 2.0
-    """PnP RANSAC inlier threshold, px."""
-    ransac_iterations: int = 200
-    """PnP RANSAC hypotheses at most."""
-    min_inliers: int = 15
-    """Fewer PnP inliers than this is a failed localization."""
-    min_inlier_ratio: float = 0.3
-    """A pose whose inliers are fewer than this fraction of the tracks is a failed localization."""
-    seed: int = 0
-    """Seed of OpenCV's RANSAC (combined with the frame index)."""
-
-    def validate(self) -> None:
-        if self.max_corners < 4 or self.min_inliers < 4:
-            raise UserError("localization needs max_corners >= 4 and min_inliers >= 4")
-        if not (self.ransac_threshold_px > 0 and self.max_round_trip_px > 0):
-            raise UserError("localization thresholds (ransac_threshold_px, max_round_trip_px) must be positive")
-        if not 0.0 <= self.min_inlier_ratio <= 1.0:
-            raise UserError(f"min_inlier_ratio must be in [0, 1], got {self.min_inlier_ratio}")
 
 
 @dataclass
@@ -166,9 +129,9 @@ class _LRU:
 def views_from_pipeline(result) -> list[KeyframeView]:
     """Keyframe views from a run in memory (``SLAMResult``: its stored keyframes in their submap
     frames, the graph nodes, the reported poses; exact in a projective world)."""
-    from .results import keyframe_colors
+    from .result.reading import keyframe_colors
 
-    return [KeyframeView(frame_index=k.frame_index, timestamp=k.timestamp, image=keyframe_colors(k, result), mask=k.mask(),
+    return [KeyframeView(frame_index=k.frame_index, timestamp=k.timestamp, image=keyframe_colors(k, result.keyframe_colors), mask=k.mask(),
                          K=k.K, T_cam_local=to_4x4(k.T_cam_submap),
                          H_world_local=np.asarray(result.H_world_submap[k.submap_id]), T_world_cam=np.asarray(T),
                          points=k.points)
@@ -194,7 +157,6 @@ class FrameLocalizer:
     def __init__(self, keyframes: Sequence[KeyframeView], config: LocalizationConfig | None = None,
                  to_grid: Callable[[Frame], np.ndarray] | None = None) -> None:
         self.config = config or LocalizationConfig()
-        self.config.validate()
         if not keyframes:
             raise UserError("all-frame localization needs at least one keyframe")
         self.keyframes = sorted(keyframes, key=lambda k: k.frame_index)
@@ -285,15 +247,25 @@ class FrameLocalizer:
         return FramePose(frame.index, float(frame.timestamp), T_world_cam, K_world, view.frame_index, len(X), count)
 
 
+def _reported(frames: Iterable[Frame], reporter: Progress) -> Iterator[Frame]:
+    """``frames``, reporting each one done to ``reporter`` (closed at the end)."""
+    try:
+        for frame in frames:
+            yield frame
+            reporter.frame()
+    finally:
+        reporter.close()
+
+
 def localize_frames(frames: Iterable[Frame], keyframes: Sequence[KeyframeView], config: LocalizationConfig | None = None,
                     to_grid: Callable[[Frame], np.ndarray] | None = None, progress: bool = False) -> AllFramePoses:
     """Poses of every frame of ``frames`` (keyframes keep theirs; see the module docstring)."""
-    from tqdm import tqdm
-
     localizer = FrameLocalizer(keyframes, config, to_grid)
     by_index = {k.frame_index: k for k in keyframes}
     stamps, poses, is_key, indices, gts, failed, seconds = [], [], [], [], [], [], []
-    for frame in tqdm(frames, disable=not progress, desc="all frames", unit="frame", leave=False):
+    total = len(frames) if hasattr(frames, "__len__") else None
+    reporter = Progress(total, enabled=progress, description="all frames")
+    for frame in _reported(frames, reporter):
         if frame.index in by_index:
             view = by_index[frame.index]
             stamps.append(view.timestamp)

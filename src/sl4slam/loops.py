@@ -181,7 +181,7 @@ class LoopVerifier:
         aligner: the alignment stage (its model must match the graph's group).
         backend: the graph, for the consistency check.
         information: ``alignment -> (dim, dim)`` information of an edge (``sl4slam.backend.evidence``).
-        attention: run the attention check (``sl4slam.config.attention_check`` resolves the setting).
+        attention: run the attention check (``sl4slam.resolve`` settles the setting).
     """
 
     def __init__(self, config: LoopConfig, alignment_config: AlignmentConfig, aligner: Aligner, backend: Backend,

@@ -1,59 +1,59 @@
 """The orchestrator: frames -> keyframes -> submaps -> alignment -> factor graph -> poses and map.
 
-It is given its stages and talks to each through its interface only (``sl4slam.types``): the
-frontend (VGGT, the simulator, a replayed cache), retrieval (SALAD, ORB, none), the aligner (SL(4),
-calibration-and-scale or Sim(3)), the backend (the submap graph in SL(4) or Sim(3), or the keyframe
-graph) and the loop verifier. ``process_submap`` reads as the list of steps of one submap; each step
-is a method below it. See docs/architecture.md.
-
-Both graph designs get the same calls: measurements in submap coordinates, with the submap's
-keyframes and extrinsics (``SubmapFrames``) and each loop's two frames, which the keyframe graph
-uses to place them between keyframe nodes; both return a ``WorldEstimate`` with, for the keyframe
-graph, a transform per keyframe.
-
-Where the run ends with the metric upgrade, a link that only the shared frame's camera fixes (a
-fallback on a planar frame) is completed from the new submap's cameras in the running upgrade of
-the map so far before it enters the graph (``complete_link``, ``sl4slam.completion``), so the map
-stays one projective frame for the final upgrade.
+It is given its stages (``sl4slam.compose.build_stages`` makes them from the resolved config) and
+talks to each through its interface only (``sl4slam.types``, ``sl4slam.backend.interface``): the
+frontend (a model, the simulator, a replayed cache), retrieval (SALAD, ORB, none), the aligner
+(SL(4), calibration-and-scale or Sim(3)), the graph (submap or keyframe design) and the loop
+verifier. ``process_submap`` reads as the list of steps of one submap; each step is a method
+below it. The metric frame (completing planar links while the run goes on, the upgrade at the
+end) is ``sl4slam.metric_frame``; the result and its outputs are ``sl4slam.result``. See
+docs/architecture.md.
 
 Nothing that goes wrong inside a submap ends a run:
 
 - the frontend fails (an exception or non-finite output): the submap is skipped and its keyframes
   are lost; the next submap still shares a frame with the last good one. ``max_frontend_failures``
-  failures in a row end the run, with what was done returned;
+  failures in a row end the run, with what was done returned. A ``UserError`` from the frontend
+  (a replayed cache that does not match, a submap that cannot fit the memory budget) is a problem
+  of the settings, not of the frames: it ends the run at once, with its line;
 - the odometry fit fails or fails its checks (``sl4slam.edges``): the shared frame's camera edge
   (its two cameras and depth ratio) takes its place with an inflated sigma, listed as a fallback;
 - that is unusable too (the frontend's cameras are implausible), or GTSAM cannot solve the graph
   with the new edge: the submap starts a new map segment — its node gets a weak prior at the
   previous node's estimate instead of an odometry factor, so the trajectory continues, later loops
-  can join the segments, and the summary lists where each segment starts and why;
+  can join the segments, and the summary lists where each segment starts and why; if even that
+  update fails, the submap is dropped like a failed frontend's;
 - anything goes wrong with a loop candidate (an unreadable loop frame, a failed alignment, a check
-  that fails, a graph update that fails): the loop is rejected and listed with its reason.
+  that fails, a graph update that fails): the loop is rejected and listed with its reason;
+- the final polish of the graph fails (a singular node): the result uses iSAM2's estimate, and the
+  summary says so.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import inspect
 import logging
 import time
-from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .alignment import make_aligner
-from .backend import Backend, BackendUpdateError, SubmapFrames, WorldEstimate, make_backend
+from .backend import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
 from .backend.evidence import edge_information
-from .config import SLAMConfig, attention_check, completes_links, metric_upgrade_on
+from .compose import _BUILD, build_stages
+from .config import SLAMConfig
 from .edges import EdgeReport, camera_problem, edge_problem
 from .errors import UserError
-from .geometry import decompose_projection, normalize_sl4, to_4x4
+from .geometry import normalize_sl4, to_4x4
 from .keyframes import KeyframeSelector
 from .loops import LoopEvidence, LoopVerifier, grey_for_check
+from .metric_frame import MetricFrame
 from .progress import Progress, StageTimer
-from .submap import StoredKeyframe, confidence_levels, confidence_mask, principal_points, submap_points
-from .types import Aligner, Alignment, Frame, FrameSource, FrameView, Frontend, LoopCandidate, Retrieval, SubmapPrediction
+from .resolve import ResolvedConfig, resolve
+from .result import SLAMResult, SourceColors, keyframe_cameras
+from .submap import StoredKeyframe, confidence_levels, confidence_mask, submap_points
+from .types import (Aligner, Alignment, Frame, FrameSource, FrameView, Frontend, FrontendCapabilities, LoopCandidate,
+                    Retrieval, SubmapPrediction)
 
 log = logging.getLogger("sl4slam")
 
@@ -101,105 +101,67 @@ class DenseSubmap:
 
     Attributes:
         prediction: the frontend's output.
+        T_cam_submap: ``(S, 4, 4)`` float64 its extrinsics.
         mask: ``(S, H, W)`` confident pixels (``SubmapConfig.tau_conf``).
         levels: the submap's confidence quantiles (``sl4slam.submap.confidence_levels``).
         views: ``{slot: FrameView}`` for the frames that are aligned (points at full precision).
     """
 
     prediction: SubmapPrediction
+    T_cam_submap: np.ndarray
     mask: np.ndarray
     levels: np.ndarray
     views: dict[int, FrameView]
 
 
-@dataclass
-class SLAMResult:
-    """What a run produces (in memory); ``sl4slam.outputs`` writes it to disk.
-
-    Attributes:
-        keyframes: the stored keyframes in time order (one per keyframe, shared frames once).
-        T_world_cam: ``(N, 4, 4)`` keyframe poses (world-from-camera, rigid part of the decomposed
-            camera; world units are the first submap's).
-        K: ``(N, 3, 3)`` keyframe intrinsics decomposed from the world camera matrices.
-        H_world_submap: where each submap sits in the world (the submap graph's nodes; optimized by
-            the final polish, or iSAM2's current estimate for a snapshot).
-        T_world_cam_gt: ``(N, 4, 4)`` ground truth for the keyframes, or ``None``.
-        edges: every odometry, loop (accepted or rejected) and segment record.
-        segments: ``(N,)`` int, the map segment of each keyframe (0 unless a segment started).
-        stats: counts and timings for the summary.
-        colors: ``keyframe -> (H, W, 3)`` uint8 colours on the prediction grid (re-read from the source).
-        H_world_keyframe: ``{frame_index: (4, 4)}`` for graphs with a node per keyframe: maps the
-            keyframe's submap points into the world through its own node (use :meth:`H_world`).
-    """
-
-    keyframes: list[StoredKeyframe]
-    T_world_cam: np.ndarray
-    K: np.ndarray
-    H_world_submap: dict[int, np.ndarray]
-    T_world_cam_gt: np.ndarray | None
-    edges: list[EdgeReport]
-    segments: np.ndarray
-    stats: dict = field(default_factory=dict)
-    colors: Callable[[StoredKeyframe], np.ndarray] | None = None
-    H_world_keyframe: dict[int, np.ndarray] = field(default_factory=dict)
-
-    def H_world(self, keyframe: StoredKeyframe) -> np.ndarray:
-        """``(4, 4)`` map from ``keyframe``'s submap points to the world (its own node, else its submap's)."""
-        H = self.H_world_keyframe.get(keyframe.frame_index)
-        return H if H is not None else self.H_world_submap[keyframe.submap_id]
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return np.array([k.timestamp for k in self.keyframes], dtype=np.float64)
-
-    def keyframe_colors(self, keyframe: StoredKeyframe) -> np.ndarray:
-        """``(H, W, 3)`` uint8 colours of ``keyframe``; mid-grey when they cannot be re-read."""
-        if self.colors is not None:
-            try:
-                return self.colors(keyframe)
-            except UserError as exc:
-                log.warning("keyframe %d: colours unavailable (%s); written grey", keyframe.frame_index, exc)
-        return np.full(keyframe.shape + (3,), 128, dtype=np.uint8)
+def source_problem(source: FrameSource, capabilities: FrontendCapabilities, frontend_name: str) -> str | None:
+    """Why a run cannot use ``source`` with this frontend (too few frames, no ground truth for a
+    frontend that reads it), or ``None``; checked before any frame is read."""
+    if len(source) < 2:
+        return f"{source.name}: {len(source)} frame(s) found; SLAM needs at least 2 frames"
+    if capabilities.needs_ground_truth and not source.has_ground_truth:
+        return (f"{source.name} has no depth and ground-truth poses, which the {frontend_name} frontend needs (an RGB-D "
+                "sequence: TUM, 7-Scenes or the synthetic world); use a model (--model vggt)")
+    return None
 
 
 class SLAMPipeline:
     """VGGT-SLAM over a frame source.
 
     Args:
-        config: every setting; validated here, before any work.
-        frontend: reconstructs a submap's frames.
-        retrieval: proposes loop candidates (``None``: no loop closure).
-        aligner: measures relative transforms (default: the one ``config.alignment`` names).
-        backend: the factor graph (default: the one ``config.backend`` names).
+        config: the run's settings (a ``SLAMConfig`` is resolved here: ``sl4slam.resolve``).
+        frontend, retrieval, aligner, backend: stages that replace the ones the config names
+            (``retrieval=None``: no loop closure; see ``sl4slam.compose.build_stages``).
         on_submap: called as ``on_submap(pipeline, submap_id)`` after every processed submap.
 
     Example::
 
-        pipeline = SLAMPipeline(config, frontend=SimulatedFrontend(config.sim))
-        result = pipeline.run(open_source("rgbd_dataset_freiburg1_xyz"))
+        config = SLAMConfig(frontend="simulated")
+        config.sim.profile = "vggt"
+        result = SLAMPipeline(config).run(open_source("rgbd_dataset_freiburg1_xyz", config.source))
     """
 
-    def __init__(
-        self,
-        config: SLAMConfig,
-        frontend: Frontend,
-        retrieval: Retrieval | None = None,
-        aligner: Aligner | None = None,
-        backend: Backend | None = None,
-        on_submap: Callable[["SLAMPipeline", int], None] | None = None,
-    ) -> None:
-        config.validate()
-        self.config = config
-        self.frontend = frontend
-        self.retrieval = retrieval
-        self.aligner = aligner if aligner is not None else make_aligner(config)
-        self.backend = backend if backend is not None else make_backend(config.backend)
+    def __init__(self, config: SLAMConfig | ResolvedConfig, frontend: Frontend | None = None, retrieval: Any = _BUILD,
+                 aligner: Aligner | None = None, backend: Backend | None = None,
+                 on_submap: Callable[["SLAMPipeline", int], None] | None = None) -> None:
+        # a frontend given here is resolved with its own capabilities (an explicit attention check it
+        # cannot feed is refused, "auto" runs without it)
+        self.resolved = resolve(config, capabilities=frontend.capabilities if frontend is not None else None)
+        self.config = self.resolved.config
+        stages = build_stages(self.resolved, frontend, retrieval, aligner, backend)
+        self.frontend: Frontend = stages.frontend
+        self.retrieval: Retrieval | None = stages.retrieval
+        self.aligner: Aligner = stages.aligner
+        self.backend: Backend = stages.backend
         if self.aligner.group == "sl4" and self.backend.kind != "sl4":
             raise UserError(f"the {self.aligner.model} aligner measures projective transforms, which a "
                             f"{self.backend.kind} graph cannot hold; use a Sim(3) alignment model")
-        self.loop_verifier = LoopVerifier(config.loops, config.alignment, self.aligner, self.backend, self.edge_information,
-                                          attention=attention_check(config) and scores_matches(frontend, config))
-        self.selector = KeyframeSelector(config.keyframes)
+        attention = self.resolved.attention_check and self.frontend.capabilities.scores_pairs
+        self.loop_verifier = LoopVerifier(self.config.loops, self.config.alignment, self.aligner, self.backend,
+                                          self.edge_information, attention=attention)
+        self.metric_frame = MetricFrame(self.config.upgrade, self.backend, self.resolved.metric_upgrade,
+                                        self.resolved.complete_links)
+        self.selector = KeyframeSelector(self.config.keyframes)
         self.on_submap = on_submap
         self.keyframes: list[StoredKeyframe] = []
         self._by_frame: dict[int, StoredKeyframe] = {}
@@ -209,14 +171,16 @@ class SLAMPipeline:
         self.submap_loops: list[int] = []  # loop factors added with each submap
         self.num_submaps = 0  # submap ids handed out (failed submaps included)
         self.num_frames = 0
-        self.dropped: dict[str, int] = {"no ground truth": 0, "frontend failed": 0}
+        self.dropped: dict[str, int] = {"no ground truth": 0, "frontend failed": 0, "graph failed": 0}
         self.frontend_failures: list[dict] = []
+        self.notes: list[str] = []  # problems the summary reports that are not edges
         self.stop_requested = False
         self._failures_in_a_row = 0
         self._gt: dict[int, np.ndarray] = {}
-        self._prior: Frame | None = None
-        self._prior_view: FrameView | None = None  # the shared frame at full precision
+        self._shared: Frame | None = None  # the next submap's shared frame: the last new keyframe stored
+        self._shared_view: FrameView | None = None  # ... at full precision, as its submap reconstructed it
         self._source: FrameSource | None = None
+        self.colors: SourceColors | None = None  # the keyframes' colours, re-read from the source
 
     # ------------------------------------------------------------------ driving
     def run(self, source: FrameSource, progress: bool = True) -> SLAMResult:
@@ -226,32 +190,31 @@ class SLAMPipeline:
 
     def consume(self, source: FrameSource, progress: bool = True) -> None:
         """Feed the frames of ``source`` through keyframe selection and submaps (no final result).
+        The source applies ``[source]`` stride and max_frames (``sl4slam.io.open_source``).
 
         Raises ``UserError`` for a source the frontend cannot use, and :class:`FrontendFailedError`
         when the frontend keeps failing (what was processed stays in the pipeline).
         """
+        problem = source_problem(source, self.frontend.capabilities, self.frontend.name)
+        if problem:
+            raise UserError(problem)
+        self.colors = SourceColors(source, self.frontend)
         self._source = source
-        total = len(source)
-        if self.config.max_frames > 0:
-            total = min(total, self.config.max_frames)
-        if total < 2:
-            raise UserError(f"{source.name}: {total} frame(s) found; SLAM needs at least 2 frames")
-        if self.frontend.requires_ground_truth and not source.has_ground_truth:
-            raise UserError(f"{source.name} has no depth and ground-truth poses, which the {self.frontend.name} frontend "
-                            "needs (an RGB-D sequence: TUM, 7-Scenes or the synthetic world); use --frontend vggt")
         pending: list[Frame] = []
-        reporter = Progress(total, enabled=progress, every=self.config.output.progress_every)
+        reporter = Progress(len(source), enabled=progress, every=self.config.output.progress_every, per_submap=True)
         try:
             for count, frame in enumerate(source):
-                if count >= total or self.stop_requested:
+                if self.stop_requested:
                     break
-                if count % self.config.stride == 0 and self._select(frame):
+                if self._select(frame):
                     pending.append(frame)
-                if len(pending) == self.config.submap.size:
+                full = len(pending) == self.config.submap.size
+                if full:
                     self.process_submap(pending)
                     pending = []
-                    reporter.submap(count + 1, keyframes=len(self.keyframes), submaps=self.num_submaps, loops=self.num_loops)
                 reporter.frame(keyframes=len(self.keyframes) + len(pending), submaps=self.num_submaps, loops=self.num_loops)
+                if full:
+                    reporter.submap(count + 1, keyframes=len(self.keyframes), submaps=self.num_submaps, loops=self.num_loops)
             if pending and not self.stop_requested:
                 self.process_submap(pending)
         finally:
@@ -264,7 +227,8 @@ class SLAMPipeline:
 
     def _select(self, frame: Frame) -> bool:
         """Keyframe decision for one input frame (frames the frontend cannot use are dropped)."""
-        if self.frontend.requires_ground_truth and (frame.depth is None or frame.T_world_cam is None or frame.K is None):
+        if self.frontend.capabilities.needs_ground_truth and (
+                frame.depth is None or frame.T_world_cam is None or frame.K is None):
             self.dropped["no ground truth"] += 1  # e.g. TUM frames without depth within 0.02 s
             return False
         self.num_frames += 1
@@ -293,11 +257,12 @@ class SLAMPipeline:
             with timer("alignment"):
                 odometry = self.align_odometry(work, dense)
             with timer("backend"):
-                self.add_to_graph(work, dense, odometry)
-            with timer("loops"):
-                self.close_loops(work, dense)
-            with timer("store"):
-                self.store(work, dense)
+                added = self.add_to_graph(work, dense, odometry)
+            if added:
+                with timer("loops"):
+                    self.close_loops(work, dense)
+                with timer("store"):
+                    self.store(work, dense)
         # descriptor extraction (a model, like the frontend) is reported apart from the search
         seconds = dict(timer.seconds)
         seconds["retrieval_describe"] = (self.retrieval.describe_seconds if self.retrieval is not None else 0.0) - described
@@ -313,15 +278,15 @@ class SLAMPipeline:
         if self.retrieval is not None and self.config.submap.w_loop > 0:
             proposed = self.retrieval.query(list(new_frames), submap_id, self.config.submap.w_loop)
             candidates = [c for c in proposed[: self.config.submap.w_loop] if c.match_frame in self._by_frame]
-        prior = [self._prior] if self._prior is not None else []
-        frames, loops = prior + list(new_frames), []
+        shared = [self._shared] if self._shared is not None else []
+        frames, loops = shared + list(new_frames), []
         for candidate in candidates:
             try:
                 frames.append(self._source.get(candidate.match_frame))
                 loops.append(candidate)
             except UserError as exc:
                 self._reject_loop(candidate, submap_id, f"the loop frame cannot be read again: {exc}")
-        return SubmapInput(submap_id, frames, len(prior), len(new_frames), loops)
+        return SubmapInput(submap_id, frames, len(shared), len(new_frames), loops)
 
     def reconstruct(self, work: SubmapInput) -> SubmapPrediction | None:
         """The frontend's prediction, or ``None`` when it fails on this submap (see the module doc)."""
@@ -330,20 +295,18 @@ class SLAMPipeline:
             # only frontends asked for attention scores need to know the keyword
             prediction = self.frontend.reconstruct(work.frames, work.submap_id, **({"match_pairs": pairs} if pairs else {}))
             problem = prediction_problem(prediction, len(work.frames))
-        except (KeyboardInterrupt, SystemExit):
-            raise
+        except (KeyboardInterrupt, SystemExit, UserError):
+            raise  # a problem of the settings (a cache that does not match, a memory budget): its line, at once
         except Exception as exc:  # a failing model must not end the run: the submap is skipped
             problem = f"{type(exc).__name__}: {exc}"
         if problem is None:
             self._failures_in_a_row = 0
             return prediction
         self._failures_in_a_row += 1
-        self.dropped["frontend failed"] += work.num_new
+        self._drop(work, "frontend failed")
         self.frontend_failures.append({"submap": work.submap_id, "reason": problem,
                                        "keyframes": [f.index for f in work.frames[work.first_new:work.last_slot + 1]]})
         log.warning("submap %d: the frontend failed (%s); its %d keyframes are skipped", work.submap_id, problem, work.num_new)
-        for candidate in work.loops:
-            self._reject_loop(candidate, work.submap_id, "the frontend failed on this submap")
         if self._failures_in_a_row >= self.config.max_frontend_failures:
             raise FrontendFailedError(
                 f"the frontend failed on {self._failures_in_a_row} submaps in a row (last: {problem}); "
@@ -355,18 +318,19 @@ class SLAMPipeline:
         frame, the last new keyframe (shared with the next submap) and the loop frames. The map is
         rebuilt from stored depth, so no other frame needs points now."""
         mask = confidence_mask(prediction.confidence, prediction.depth, self.config.submap.tau_conf)
+        T_cam_submap = to_4x4(prediction.T_cam_submap)
         needed = sorted({0, work.last_slot, *range(work.loop_slot(0), len(work.frames))})
         points = submap_points(prediction, self.config.submap.use_point_head, needed)
-        views = {slot: FrameView(points[k], mask[slot], prediction.K[slot], to_4x4(prediction.T_cam_submap[slot]))
+        views = {slot: FrameView(points[k], mask[slot], prediction.K[slot], T_cam_submap[slot])
                  for k, slot in enumerate(needed)}
-        return DenseSubmap(prediction, mask, confidence_levels(prediction.confidence, prediction.depth), views)
+        return DenseSubmap(prediction, T_cam_submap, mask, confidence_levels(prediction.confidence, prediction.depth), views)
 
     def align_odometry(self, work: SubmapInput, dense: DenseSubmap) -> Alignment | str | None:
         """The measurement to the previous submap from the shared frame: the fit, else the camera
         edge (as a fallback), else the reason neither can be used. ``None`` for a first submap."""
-        if self._prior_view is None:
+        if self._shared_view is None:
             return None
-        before, after = self._prior_view, dense.views[0]
+        before, after = self._shared_view, dense.views[0]
         problem = camera_problem(before) or camera_problem(after)
         if problem:
             return problem
@@ -387,32 +351,33 @@ class SLAMPipeline:
         edge.fallback = f"alignment failed ({problem}); used the shared frame's cameras and depth"
         return edge
 
-    def add_to_graph(self, work: SubmapInput, dense: DenseSubmap, odometry: Alignment | str | None) -> None:
+    def add_to_graph(self, work: SubmapInput, dense: DenseSubmap, odometry: Alignment | str | None) -> bool:
         """Add the submap (its node, or its keyframes' nodes) with its odometry edge, or as the start
-        of a new map segment."""
+        of a new map segment; ``False`` when the graph cannot take it at all (the submap is dropped)."""
         submap_id = work.submap_id
         frames = self._submap_frames(work, dense)
         if odometry is None and self.backend.num_submaps == 0:
             self.backend.add_submap(submap_id, None, frames=frames)
             self.backend.update()
-            return
+            return True
         relative = np.eye(4)  # where a new segment starts relative to the last node, without a measurement
         if isinstance(odometry, Alignment):
-            previous = self._by_frame[self._prior.index].submap_id
-            odometry = self.complete_link(odometry, previous, self._prior_view, dense, slot=0)
-            self.edges.append(EdgeReport.measured("odometry", previous, submap_id, self._prior.index, odometry))
+            previous = self._by_frame[self._shared.index].submap_id
+            odometry = self.metric_frame.complete_link(odometry, previous, self._shared_view, dense.views[0],
+                                                       dense.prediction, 0, self.keyframes)
+            self.edges.append(EdgeReport.measured("odometry", previous, submap_id, self._shared.index, odometry))
             if odometry.fallback:
                 log.info("submap %d->%d: %s", previous, submap_id, odometry.fallback)
             relative = self._graph_measurement(odometry.H)
             self.backend.add_submap(submap_id, relative, self.edge_information(odometry), frames=frames)
             try:
                 self.backend.update()
-                return
+                return True
             except BackendUpdateError as exc:
                 odometry = f"the graph could not be solved with this edge ({exc})"
                 self.edges[-1].accepted, self.edges[-1].reason = False, odometry
         reason = odometry if isinstance(odometry, str) else "no shared frame with an earlier submap"
-        self._start_segment(submap_id, reason, relative, frames)
+        return self._start_segment(work, reason, relative, frames)
 
     def close_loops(self, work: SubmapInput, dense: DenseSubmap) -> None:
         """Verify every loop candidate (``sl4slam.loops``) and add the accepted ones to the graph."""
@@ -433,7 +398,9 @@ class SLAMPipeline:
             if not decision.accepted:
                 self._reject_loop(candidate, work.submap_id, decision.reason, decision.alignment, decision.checks)
                 continue
-            alignment = self.complete_link(decision.alignment, old.submap_id, old.view(), dense, work.loop_slot(k))
+            alignment = self.metric_frame.complete_link(decision.alignment, old.submap_id, old.view(),
+                                                        dense.views[work.loop_slot(k)], dense.prediction,
+                                                        work.loop_slot(k), self.keyframes)
             report = EdgeReport.measured("loop", old.submap_id, work.submap_id, candidate.match_frame, alignment,
                                          query_frame=candidate.query_frame, checks=decision.checks)
             self.edges.append(report)
@@ -457,8 +424,8 @@ class SLAMPipeline:
                                                     frame.timestamp, work.submap_id)
             self.keyframes.append(stored)
             self._by_frame[frame.index] = stored
-        self._prior = work.frames[work.last_slot]
-        self._prior_view = dense.views[work.last_slot]
+        self._shared = work.frames[work.last_slot]
+        self._shared_view = dense.views[work.last_slot]
         if self.retrieval is not None:
             self.retrieval.add(work.frames[work.first_new:work.last_slot + 1], work.submap_id)
 
@@ -470,8 +437,8 @@ class SLAMPipeline:
     def _submap_frames(self, work: SubmapInput, dense: DenseSubmap) -> SubmapFrames:
         """The submap's shared frame (when it has one) and new keyframes with their extrinsics."""
         slots = ([0] if work.first_new else []) + list(work.new_slots)
-        T = np.stack([to_4x4(dense.prediction.T_cam_submap[slot]) for slot in slots])
-        return SubmapFrames(tuple(work.frames[slot].index for slot in slots), T, shared=bool(work.first_new))
+        return SubmapFrames(tuple(work.frames[slot].index for slot in slots), dense.T_cam_submap[slots],
+                            shared=bool(work.first_new))
 
     def _match_pairs(self, work: SubmapInput) -> list[tuple[int, int]]:
         """``(query keyframe slot, loop frame slot)`` of every loop candidate, when the loop check reads
@@ -480,88 +447,35 @@ class SLAMPipeline:
             return []
         return [(work.slot_of(c.query_frame), work.loop_slot(k)) for k, c in enumerate(work.loops)]
 
-    def complete_link(self, alignment: Alignment, old_submap: int, old_view: FrameView, dense: DenseSubmap,
-                      slot: int) -> Alignment:
-        """A fallback link that only the shared frame's cameras fix, completed from the new submap's
-        cameras in the running metric upgrade (``sl4slam.completion``), where the run ends with the
-        upgrade; any other measurement as it is. ``slot``: the shared frame in the new submap."""
-        from .completion import complete_camera_link, plane_normal, shared_camera_agreement
-
-        if not alignment.fallback or alignment.model != "sl4" or not completes_links(self.config):
-            return alignment
-        new_view = dense.views[slot]
-        if shared_camera_agreement(old_view.camera, new_view.camera, alignment.H) > 1e-6:
-            return alignment  # a stand-in that does not keep the shared camera: nothing to complete
-        running = self._running_upgrade(old_submap)
-        if isinstance(running, str):
-            alignment.extras["completion"] = {"applied": False, "reason": running}
-            return alignment
-        H_metric_world, focal = running
-        prediction = dense.prediction
-        others = [s for s in range(len(prediction.K)) if s != slot]
-        cameras = np.stack([prediction.K[s] @ to_4x4(prediction.T_cam_submap[s])[:3] for s in others])
-        points = new_view.points[new_view.mask].astype(np.float64)
-        # a camera-constrained fit took the plane's tilt from its points: only the relief along the
-        # normal is left free; the calibration link took nothing from them
-        free = plane_normal(points) if alignment.extras.get("camera_constrained") and len(points) >= 3 else None
-        H_metric_old = H_metric_world @ self.backend.H_world_submap(old_submap)
-        completion = complete_camera_link(alignment.H, new_view.centre, points, cameras, principal_points(prediction)[others],
-                                          H_metric_old, focal, self.config.upgrade, free)
-        alignment.extras["completion"] = completion.summary()
-        if not completion.applied:
-            return alignment
-        return dataclasses.replace(alignment, H=completion.H_a_b, extras=dict(alignment.extras), fallback=(
-            f"{alignment.fallback}; completed from the new submap's cameras (constraint residual "
-            f"{completion.residual_before:.2g} -> {completion.residual_after:.2g})"))
-
-    def _running_upgrade(self, submap_id: int) -> tuple[np.ndarray, float] | str:
-        """``(H_metric_world, focal px)`` of the map so far in ``submap_id``'s segment, or why there is none."""
-        world = self.backend.world_estimate()
-        members = self._segment_members(world).get(self.backend.segments[
-            int(np.searchsorted(self.backend.segments, submap_id, side="right")) - 1], [])
-        if len(members) < self.config.upgrade.min_keyframes:
-            return f"too few keyframes for a running upgrade ({len(members)})"
-        try:
-            upgrade = self._estimate_upgrade(members, world)
-        except (UserError, ValueError, np.linalg.LinAlgError) as exc:
-            return f"no running upgrade: {exc}"
-        if upgrade.applied:
-            return upgrade.H_metric_world, upgrade.focal
-        if upgrade.reason.startswith("already metric"):
-            return np.eye(4), upgrade.focal
-        return f"no running upgrade: {upgrade.reason}"
-
-    def _segment_members(self, world: WorldEstimate) -> dict[int, list[StoredKeyframe]]:
-        """The keyframes placed in ``world``, by the first submap of their map segment."""
-        keyframes = [k for k in self.keyframes if k.submap_id in world.H_world_submap]
-        starts = self.backend.segments
-        segment_of = np.searchsorted(starts, [k.submap_id for k in keyframes], side="right") - 1
-        members: dict[int, list[StoredKeyframe]] = {}
-        for keyframe, segment in zip(keyframes, segment_of):
-            members.setdefault(int(starts[segment]), []).append(keyframe)
-        return members
-
-    def _estimate_upgrade(self, members: Sequence[StoredKeyframe], world: WorldEstimate):
-        """``sl4slam.upgrade.estimate_metric_upgrade`` of these keyframes' cameras in ``world``."""
-        from .upgrade import estimate_metric_upgrade
-
-        return estimate_metric_upgrade(world_cameras(members, world.H_world_submap, world.H_world_keyframe),
-                                       np.stack([k.principal_point for k in members]), self.config.upgrade,
-                                       image_sizes=np.array([k.shape[::-1] for k in members]))
-
     def _graph_measurement(self, H: np.ndarray) -> np.ndarray:
         return normalize_sl4(H) if self.backend.kind == "sl4" else H
 
-    def _start_segment(self, submap_id: int, reason: str, relative: np.ndarray, frames: SubmapFrames) -> None:
+    def _start_segment(self, work: SubmapInput, reason: str, relative: np.ndarray, frames: SubmapFrames) -> bool:
         """Add the submap with a weak prior at ``H_world_last @ relative`` (the rejected measurement
-        when it was usable, else the last submap's frame)."""
+        when it was usable, else the last submap's frame); if the graph cannot take even that, the
+        submap is dropped (``False``)."""
         last = self.keyframes[-1].submap_id
-        self.backend.start_segment(submap_id, self.backend.H_world_submap(last) @ relative, frames=frames)
-        self.backend.update()
-        self.edges.append(EdgeReport(kind="segment", submap_from=last, submap_to=submap_id,
-                                     frame_index=self._prior.index if self._prior is not None else -1,
-                                     accepted=False, reason=reason))
-        log.warning("submap %d starts a new map segment: %s", submap_id, reason)
+        shared_index = self._shared.index if self._shared is not None else -1
+        try:
+            self.backend.start_segment(work.submap_id, self.backend.H_world_submap(last) @ relative, frames=frames)
+            self.backend.update()
+        except (BackendUpdateError, ValueError) as exc:
+            dropped = f"{reason}; a new map segment could not be started either ({exc}): the submap is dropped"
+            self.edges.append(EdgeReport(kind="segment", submap_from=last, submap_to=work.submap_id,
+                                         frame_index=shared_index, accepted=False, reason=dropped))
+            self._drop(work, "graph failed")
+            log.warning("submap %d: %s", work.submap_id, dropped)
+            return False
+        self.edges.append(EdgeReport(kind="segment", submap_from=last, submap_to=work.submap_id,
+                                     frame_index=shared_index, accepted=False, reason=reason))
+        log.warning("submap %d starts a new map segment: %s", work.submap_id, reason)
+        return True
+
+    def _drop(self, work: SubmapInput, why: str) -> None:
+        """Count the submap's new keyframes as dropped and reject its loop candidates."""
+        self.dropped[why] += work.num_new
+        for candidate in work.loops:
+            self._reject_loop(candidate, work.submap_id, f"the submap was dropped ({why})")
 
     def _loop_evidence(self, work: SubmapInput, dense: DenseSubmap, candidate: LoopCandidate, k: int) -> LoopEvidence:
         slot, query = work.loop_slot(k), work.slot_of(candidate.query_frame)
@@ -570,7 +484,7 @@ class SLAMPipeline:
             old=self._by_frame[candidate.match_frame].view(), new=dense.views[slot],
             grey_new=grey_for_check(prediction.colors[slot]), query_depth=prediction.depth[query],
             query_mask=dense.mask[query], query_grey=grey_for_check(prediction.colors[query]),
-            query_K=prediction.K[query], query_T_cam_submap=to_4x4(prediction.T_cam_submap[query]),
+            query_K=prediction.K[query], query_T_cam_submap=dense.T_cam_submap[query],
             match_ratio=recorded_match_ratio(prediction, query, slot))
 
     def _reject_loop(self, candidate: LoopCandidate, submap_id: int, reason: str, alignment: Alignment | None = None,
@@ -596,62 +510,46 @@ class SLAMPipeline:
     # ------------------------------------------------------------------ results
     def result(self) -> SLAMResult:
         """Poses and intrinsics of every stored keyframe under the polished graph estimate
-        (``final_estimates``: a batch polish of the whole graph, O(submaps), so call it at the end),
-        upgraded to a metric frame when ``config.upgrade`` allows (``sl4slam.upgrade``)."""
+        (a batch polish of the whole graph, O(submaps), so call it at the end), upgraded to a
+        metric frame when the resolved config says so (``sl4slam.metric_frame``)."""
         start = time.perf_counter()
-        world = self.backend.world_estimate(final=True)
+        world = self._final_estimate()
         optimized = time.perf_counter()
-        world, upgrades = self.metric_upgrade(world)
+        world, upgrades = self.metric_frame.upgrade(world, self.keyframes)
         result = self._result(world)
         result.stats["seconds_final_optimization"] = round(optimized - start, 5)
         result.stats["metric_upgrade"] = upgrades
         return result
+
+    def _final_estimate(self) -> WorldEstimate:
+        """The polished estimate; iSAM2's own when the polish fails (a singular node), with a note."""
+        try:
+            return self.backend.world_estimate(final=True)
+        except (BackendUpdateError, RuntimeError, ValueError) as exc:
+            first_line = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+            note = f"the final polish of the graph failed ({first_line}); the map is iSAM2's estimate"
+            log.warning(note)
+            self.notes.append(note)
+        try:
+            return self.backend.world_estimate()
+        except (RuntimeError, ValueError) as exc:
+            raise UserError(f"the graph cannot be solved at the end of the run ({exc}); no trajectory can be written") from None
 
     def snapshot(self, metric_upgrade: bool = False) -> SLAMResult:
         """The result under iSAM2's current estimate (no polish): for checkpoints and live viewers;
         ``metric_upgrade`` also upgrades it (about 0.1 s for 500 keyframes)."""
         world = self.backend.world_estimate()
         if metric_upgrade:
-            world, _ = self.metric_upgrade(world)
+            world, _ = self.metric_frame.upgrade(world, self.keyframes)
         return self._result(world)
 
-    def metric_upgrade(self, world: WorldEstimate) -> tuple[WorldEstimate, list[dict]]:
-        """Upgrade each map segment to a metric frame (one ``H_metric_world`` per segment, applied to
-        its submaps' and keyframes' transforms: every pose and map point follows). Returns the
-        upgraded estimate and one summary per segment."""
-        H_world_submap, H_world_keyframe = world.H_world_submap, world.H_world_keyframe
-        if not metric_upgrade_on(self.config):
-            return world, []
-        upgraded, summaries = WorldEstimate(dict(H_world_submap), dict(H_world_keyframe)), []
-        for start, members in sorted(self._segment_members(world).items()):
-            segment = self.backend.segments.index(start)
-            try:
-                upgrade = self._estimate_upgrade(members, world)
-            except (UserError, ValueError, np.linalg.LinAlgError) as exc:
-                # e.g. a camera at infinity in a broken map: the map is kept as it is, never lost
-                summaries.append({"segment": int(segment), "applied": False, "reason": f"cannot be estimated: {exc}"})
-                log.warning("metric upgrade of segment %d skipped: %s", segment, exc)
-                continue
-            summaries.append({"segment": int(segment), **upgrade.summary()})
-            if upgrade.applied:
-                for submap_id in {k.submap_id for k in members}:
-                    upgraded.H_world_submap[submap_id] = upgrade.H_metric_world @ H_world_submap[submap_id]
-                for keyframe in members:
-                    if keyframe.frame_index in H_world_keyframe:
-                        upgraded.H_world_keyframe[keyframe.frame_index] = (
-                            upgrade.H_metric_world @ H_world_keyframe[keyframe.frame_index])
-            log.info("metric upgrade of segment %d: %s", segment, upgrade.reason)
-        return upgraded, summaries
-
     def _result(self, world: WorldEstimate) -> SLAMResult:
-        H_world_submap = world.H_world_submap
-        keyframes = [k for k in self.keyframes if k.submap_id in H_world_submap]
-        T_world_cam, K = keyframe_cameras(keyframes, H_world_submap, world.H_world_keyframe)
+        keyframes = [k for k in self.keyframes if k.submap_id in world.H_world_submap]
+        T_world_cam, K = keyframe_cameras(keyframes, world.H_world_submap, world.H_world_keyframe)
         gt = None
         if keyframes and all(k.frame_index in self._gt for k in keyframes):
             gt = np.stack([self._gt[k.frame_index] for k in keyframes])
-        starts = self.backend.segments
-        segments = np.searchsorted(starts, [k.submap_id for k in keyframes], side="right") - 1
+        segments = self.backend.segments_of([k.submap_id for k in keyframes])
         stats = {
             "frames": self.num_frames,
             "keyframes": len(keyframes),
@@ -662,6 +560,7 @@ class SLAMPipeline:
             "segments": int(segments.max()) + 1 if len(segments) else 0,
             "dropped_frames": dict(self.dropped),
             "frontend_failures": list(self.frontend_failures),
+            "notes": list(self.notes),
             "seconds_by_stage": dict(self.timer.seconds),
             "stored_bytes": int(sum(k.nbytes for k in keyframes)),
             "seconds_per_submap": {
@@ -669,53 +568,8 @@ class SLAMPipeline:
                 for stage in sorted({k for s in self.submap_seconds for k in s})
             },
         }
-        return SLAMResult(keyframes, T_world_cam, K, H_world_submap, gt, list(self.edges), segments, stats,
-                          colors=self._colors, H_world_keyframe=dict(world.H_world_keyframe))
-
-    def _colors(self, keyframe: StoredKeyframe) -> np.ndarray:
-        if self._source is None:
-            raise UserError("no frame source to read colours from")
-        return self.frontend.grid_colors(self._source.get(keyframe.frame_index))
-
-
-def keyframe_cameras(keyframes: Sequence[StoredKeyframe], H_world_submap: dict[int, np.ndarray],
-                     H_world_keyframe: dict[int, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """World poses and intrinsics of keyframes: ``P = K [R|t] H^-1``, RQ-decomposed, with ``H`` the
-    keyframe's own transform in ``H_world_keyframe`` (by frame index, keyframe graph) or else its
-    submap's in ``H_world_submap``.
-
-    Returns ``T_world_cam (N, 4, 4)`` and ``K (N, 3, 3)``.
-    """
-    if not keyframes:
-        return np.zeros((0, 4, 4)), np.zeros((0, 3, 3))
-    P = world_cameras(keyframes, H_world_submap, H_world_keyframe)
-    K, T_world_cam, _ = decompose_projection(P)
-    return T_world_cam, K
-
-
-def world_cameras(keyframes: Sequence[StoredKeyframe], H_world_submap: dict[int, np.ndarray],
-                  H_world_keyframe: dict[int, np.ndarray] | None = None) -> np.ndarray:
-    """``(N, 3, 4)`` camera matrices ``K [R|t] H^-1`` of keyframes in the world frame (``H`` as in
-    :func:`keyframe_cameras`)."""
-    own = H_world_keyframe or {}
-    H_inv = {i: np.linalg.inv(H) for i, H in H_world_submap.items()}
-    return np.stack([k.K @ k.T_cam_submap[:3] @ (np.linalg.inv(own[k.frame_index]) if k.frame_index in own
-                                                  else H_inv[k.submap_id]) for k in keyframes])
-
-
-def scores_matches(frontend: Frontend, config: SLAMConfig) -> bool:
-    """Whether ``frontend`` can give the attention loop check its image-match ratios (it takes the
-    ``match_pairs`` keyword). A frontend that cannot is run without the check where the setting is
-    "auto"; an explicit "on" is refused before any work."""
-    try:
-        parameters = inspect.signature(frontend.reconstruct).parameters
-    except (TypeError, ValueError):
-        parameters = {}
-    able = "match_pairs" in parameters or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
-    if not able and config.loops.verify_attention == "on":
-        raise UserError(f"--loop-verify-attention on needs image-match ratios, which the {type(frontend).__name__} "
-                        "frontend does not give; use --loop-verify-attention off or auto")
-    return able
+        return SLAMResult(keyframes, T_world_cam, K, world.H_world_submap, gt, list(self.edges), segments, stats,
+                          colors=self.colors, H_world_keyframe=dict(world.H_world_keyframe))
 
 
 def recorded_match_ratio(prediction: SubmapPrediction, first: int, second: int) -> float | None:

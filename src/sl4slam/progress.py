@@ -31,20 +31,26 @@ class StageTimer:
 
 
 class Progress:
-    """Progress of a run over ``total`` frames.
+    """Progress over ``total`` frames: a bar on a terminal; on anything else (a log file) plain
+    lines, never carriage returns: every ``every`` submaps for a run, every tenth of the frames
+    otherwise, and a last line at :meth:`close` so that a log ends with the final figures.
 
     Args:
         total: frames to process (``None`` when unknown, e.g. a live camera).
         enabled: report at all (``--quiet`` turns it off).
         every: on a non-terminal, one line every this many submaps.
         stream: where it goes (stderr by default).
+        description: what is counted ("sl4slam" for a run, "all frames" for the localization).
+        per_submap: plain lines come from :meth:`submap` (a run), not from tenths of the frames.
     """
 
-    def __init__(self, total: int | None, enabled: bool = True, every: int = 10, stream: TextIO | None = None) -> None:
+    def __init__(self, total: int | None, enabled: bool = True, every: int = 10, stream: TextIO | None = None,
+                 description: str = "sl4slam", per_submap: bool = False) -> None:
         self.stream = stream if stream is not None else sys.stderr
         self.enabled = enabled
         self.every = max(1, int(every))
         self.total = total
+        self.description = description
         interactive = enabled and self.stream.isatty() and sys.stdout.isatty()
         self._bar = None
         self._redirect = None
@@ -52,34 +58,51 @@ class Progress:
             from tqdm import tqdm
             from tqdm.contrib.logging import logging_redirect_tqdm
 
-            self._bar = tqdm(total=total, unit="frame", desc="sl4slam", leave=False, file=self.stream)
+            self._bar = tqdm(total=total, unit="frame", desc=description, leave=False, file=self.stream)
             # log records go above the bar instead of being glued to it
             self._redirect = logging_redirect_tqdm(loggers=[logging.getLogger("sl4slam")])
             self._redirect.__enter__()
         self._start = time.perf_counter()
+        self._done = 0
+        self._counts: dict[str, int] = {}
+        self._printed = -1  # frames done at the last plain line
+        self._by_submap = per_submap
 
     def frame(self, **counts: int) -> None:
         """One input frame done; ``counts`` (keyframes, submaps, loops) update the bar."""
+        self._done += 1
+        self._counts.update(counts)
         if self._bar is not None:
             self._bar.update(1)
             if counts:
                 self._bar.set_postfix(counts, refresh=False)
+        elif self.enabled and not self._by_submap and self.total and self._done * 10 // self.total > self._printed * 10 // self.total:
+            self._line()
 
     def submap(self, frames_done: int, **counts: int) -> None:
         """One submap done: on a non-terminal, a plain line every ``every`` submaps."""
+        self._done = frames_done
+        self._counts.update(counts)
         if self._bar is not None or not self.enabled:
             return
         if counts.get("submaps", 0) % self.every:
             return
-        of = f"/{self.total}" if self.total else ""
-        figures = ", ".join(f"{value} {name}" for name, value in counts.items())
-        print(f"sl4slam: {frames_done}{of} frames, {figures}, {time.perf_counter() - self._start:.0f} s",
+        self._line()
+
+    def _line(self) -> None:
+        of = f"/{self.total}" if self.total and self.total < 1 << 40 else ""
+        figures = "".join(f", {value} {name}" for name, value in self._counts.items())
+        print(f"{self.description}: {self._done}{of} frames{figures}, {time.perf_counter() - self._start:.0f} s",
               file=self.stream, flush=True)
+        self._printed = self._done
 
     def close(self) -> None:
+        """End the bar, or print the final line where the last one is stale."""
         if self._bar is not None:
             self._bar.close()
             self._bar = None
+        elif self.enabled and self._done != self._printed and self._done:
+            self._line()
         if self._redirect is not None:
             self._redirect.__exit__(None, None, None)
             self._redirect = None

@@ -1,9 +1,11 @@
 """One SLAM run from a source path to an output folder (what ``sl4slam run`` does).
 
 Order of work, so that every mistake that can be found early is found before any frame is read:
-settings (``SLAMConfig.validate``), the output folder (created, written to, an earlier run refused
-unless ``overwrite``), the source (listed, and checked against what the frontend needs), the
-frontend's weights (present, cached or downloadable; one line within seconds when offline).
+settings (``sl4slam.resolve.resolve``: checked once, every "auto" settled), the output folder
+(created, written to, an earlier run refused unless ``overwrite``), the source (listed, and checked
+against what the frontend needs), the weights (present, cached or downloadable, and not cut or
+corrupt; one line within seconds when offline). A run that fails there leaves no folder behind that
+it created.
 
 During the run ``trajectory.txt`` and ``summary.json`` are rewritten from the current graph every
 ``OutputConfig.checkpoint_seconds``. SIGINT / SIGTERM finish the current submap, write every output
@@ -13,7 +15,6 @@ submaps hold. A frontend that keeps failing ends the run the same way, with its 
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import signal
@@ -23,8 +24,10 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from .atomic import atomic_write_bytes
 from .config import SLAMConfig
 from .errors import UserError
+from .resolve import ResolvedConfig, resolve
 
 log = logging.getLogger("sl4slam")
 
@@ -68,69 +71,107 @@ def prepare_output(out_dir: str | Path, overwrite: bool = False, keep: str | Pat
     return out
 
 
-def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig, replay_dir: str | None = None,
+def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig | ResolvedConfig, replay_dir: str | None = None,
              progress: bool = True, overwrite: bool = False,
              on_submap: Callable | None = None, view=None, all_frames: bool = False, keep_viewer: bool = False) -> dict:
     """Open ``source_path``, run the pipeline, write every output into ``out_dir``; return the summary.
 
-    ``view``: ``sl4slam.viewer.ViewerSettings`` to watch the run in the browser (kept open after
-    the run until Ctrl-C when ``keep_viewer``). ``all_frames``: also localize every other frame
-    (``trajectory_all.txt``, see ``sl4slam.localize``). ``source_path`` may be a camera index or a
-    stream URL (``sl4slam.io.live``).
+    The way to run SLAM from Python to a result folder (``sl4slam run`` calls it)::
+
+        from sl4slam import SLAMConfig, run_slam
+        config = SLAMConfig(frontend="simulated")
+        config.sim.profile = "vggt"
+        summary = run_slam("rgbd_dataset_freiburg1_desk", "result/", config, progress=False)
+        summary["ate"]["rmse"]
+
+    Args:
+        source_path: image folder, video, TUM / 7-Scenes sequence, camera index or stream URL.
+        out_dir: the result folder (created; an earlier run in it needs ``overwrite``).
+        config: the settings (resolved here, once).
+        replay_dir: replay recorded frontend outputs instead of running the frontend.
+        progress: progress lines and the final summary on the console; ``False``: silent.
+        view: ``sl4slam.viewer.ViewerSettings`` to watch the run in the browser (kept open after
+            the run until Ctrl-C when ``keep_viewer``).
+        all_frames: also localize every other frame (``trajectory_all.txt``, ``sl4slam.localize``).
 
     Raises:
-        UserError: bad settings, output folder, source, or weights (before any frame is read).
+        UserError: bad settings, output folder, source, or weights (before any frame is read; a
+            folder this call created is removed again); a stage's own ``UserError`` during the run,
+            after the finished work is written.
         RunInterrupted: a signal stopped the run, or the frontend kept failing; the partial results
             are written first.
     """
-    config.validate()  # the cheap checks first, without loading any model code
+    from .compose import replay_capabilities
+
+    resolved = resolve(config, capabilities=replay_capabilities(replay_dir) if replay_dir is not None else None)
     if view is not None:
         from .viewer.app import require_viser
 
         require_viser()
+    existed = Path(out_dir).expanduser().exists()
     out = prepare_output(out_dir, overwrite, keep=replay_dir)
-    from .io import open_source
+    try:
+        from .io import open_source
 
-    source = open_source(str(source_path), stride=config.stride, max_frames=config.max_frames)
+        source = open_source(str(source_path), resolved.config.source)
+    except UserError:
+        _remove_if_created(out, existed)
+        raise
     live = bool(getattr(source, "live", False))
     try:
-        return _run(source, live, out, config, replay_dir, progress, on_submap, view, all_frames, keep_viewer)
+        return _run(source, live, out, existed, resolved, replay_dir, progress, on_submap, view, all_frames, keep_viewer)
     finally:
         if live:
             source.close()  # stops the reader thread, removes the kept frames
 
 
-def _run(source, live: bool, out: Path, config: SLAMConfig, replay_dir, progress: bool, on_submap, view,
-         all_frames: bool, keep_viewer: bool) -> dict:
-    from .frontend import frontend_requires_ground_truth
+def _remove_if_created(out: Path, existed: bool) -> None:
+    """Remove the output folder this run created, if nothing was written into it."""
+    if not existed and out.is_dir() and not any(out.iterdir()):
+        out.rmdir()
+
+
+def check_before_frames(source, resolved: ResolvedConfig, replay_dir, all_frames: bool, live: bool) -> None:
+    """Every check that can fail before a frame is read: the source against the frontend, the
+    options against the source, the weights (present, cached or downloadable; one line within
+    seconds when offline, and for a cut or corrupt file)."""
+    from .pipeline import source_problem
 
     if all_frames and live:
         raise UserError("--all-frames needs a re-readable source (a video file or a folder): a live source keeps "
                         "only its keyframes; record the stream to a file first")
-    if len(source) < 2:
-        raise UserError(f"{source.name}: {len(source)} frame(s) found; SLAM needs at least 2 frames")
-    if frontend_requires_ground_truth(config, replay_dir) and not source.has_ground_truth:
-        raise UserError(f"{source.name} has no depth and ground-truth poses, which the {config.frontend} frontend "
-                        "needs (an RGB-D sequence: TUM, 7-Scenes or the synthetic world); use --frontend vggt")
-    if config.sim.false_loop_rate > 0 and not source.has_ground_truth:
-        raise UserError(f"--sim-false-loop-rate needs ground-truth poses and depth, which {source.name} has not")
-    if config.frontend == "vggt" and replay_dir is None:
+    problem = source_problem(source, resolved.capabilities, resolved.frontend.name)
+    if problem:
+        raise UserError(problem)
+    if resolved.config.false_loops.rate > 0 and not source.has_ground_truth:
+        raise UserError(f"--false-loop-rate needs ground-truth poses and depth, which {source.name} has not")
+    if replay_dir is None and resolved.frontend.weights is not None:
         from .models.hub import resolve_weights
 
-        resolve_weights(config.vggt.weights)  # missing weights: one line now, not after reading frames
+        resolve_weights(resolved.config.model.weights, source=resolved.frontend.weights)
+    if resolved.retrieval.value == "salad":
+        from .models.salad import check_salad_weights
 
-    from .frontend import make_frontend
-    from .outputs import atomic_write_bytes, write_checkpoint, write_outputs
-    from .pipeline import FrontendFailedError, SLAMPipeline
-    from .retrieval import make_retrieval
+        check_salad_weights(resolved.config.retrieval.salad_weights)
 
-    cache_dir = out / "frontend_cache" if config.output.cache_frontend else None
-    frontend = make_frontend(config, replay_dir=replay_dir, cache_dir=cache_dir)
-    frontend.prepare()
-    retrieval = make_retrieval(config.retrieval, device=_device(config), seed=config.alignment.seed,
-                               false_loops=config.sim)
-    # The source already applied stride and max_frames.
-    run_config = dataclasses.replace(config, stride=1, max_frames=0)
+
+def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig, replay_dir, progress: bool, on_submap,
+         view, all_frames: bool, keep_viewer: bool) -> dict:
+    from .compose import build_stages
+    from .pipeline import SLAMPipeline
+    from .result.outputs import write_checkpoint, write_outputs
+
+    config = resolved.config
+    try:
+        check_before_frames(source, resolved, replay_dir, all_frames, live)
+        cache_dir = out / "frontend_cache" if config.output.cache_frontend else None
+        stages = build_stages(resolved, replay_dir=replay_dir, cache_dir=cache_dir)
+        stages.frontend.prepare()
+    except UserError:
+        _remove_if_created(out, existed)
+        raise
+    if progress:
+        print("\n".join(resolved.lines()), file=sys.stderr, flush=True)
     last_write = [time.perf_counter()]
 
     viewer = None
@@ -138,16 +179,18 @@ def _run(source, live: bool, out: Path, config: SLAMConfig, replay_dir, progress
         from .viewer import LiveViewer
 
         viewer = LiveViewer(view)
-    callbacks = [c for c in (on_submap, viewer.on_submap if viewer else None, _live_status(source) if live else None) if c]
+    callbacks = [c for c in (on_submap, viewer.on_submap if viewer else None,
+                             _live_status(source) if live and progress else None) if c]
 
     def checkpoint(pipeline: SLAMPipeline, submap_id: int) -> None:
         for callback in callbacks:
             callback(pipeline, submap_id)
         if time.perf_counter() - last_write[0] >= config.output.checkpoint_seconds:
-            write_checkpoint(pipeline.snapshot(), out, config, {"source": source.name})
+            write_checkpoint(pipeline.snapshot(), out, resolved, {"source": source.name})
             last_write[0] = time.perf_counter()
 
-    pipeline = SLAMPipeline(run_config, frontend=frontend, retrieval=retrieval, on_submap=checkpoint)
+    pipeline = SLAMPipeline(resolved, stages.frontend, stages.retrieval, stages.aligner, stages.backend,
+                            on_submap=checkpoint)
     if live:
         # the source keeps exactly the frames the pipeline selected as keyframes (loop closures re-read them)
         source.keyframe_counter = lambda: pipeline.selector.num_keyframes
@@ -156,12 +199,13 @@ def _run(source, live: bool, out: Path, config: SLAMConfig, replay_dir, progress
     with _stop_on_signals(pipeline):
         try:
             pipeline.consume(source, progress=progress and not live)
-        except FrontendFailedError as exc:
+        except UserError as exc:  # a stage's own problem (a frontend that keeps failing, a cache that does not match)
             status, stop_reason = "failed", str(exc)
         except KeyboardInterrupt:
             pipeline.stop_requested = True
+    finished = len({k.submap_id for k in pipeline.keyframes})
     if pipeline.stop_requested and status == "complete":
-        status, stop_reason = "interrupted", f"interrupted after {pipeline.num_submaps} submaps"
+        status, stop_reason = "interrupted", f"interrupted after {finished} finished submap(s)"
     exit_code = 130 if status == "interrupted" else 1
     if not pipeline.keyframes:
         raise RunInterrupted(f"{stop_reason or 'no keyframes'}; nothing was finished, so nothing was written to {out}",
@@ -171,12 +215,13 @@ def _run(source, live: bool, out: Path, config: SLAMConfig, replay_dir, progress
     extra = {"stop_reason": stop_reason} if stop_reason else {}
     if live:
         extra["live"] = {"delivered": source.delivered, "dropped": source.dropped, "fps": source.fps}
-    summary = write_outputs(result, out, config, source_name=source.name, skipped=source.skipped, status=status,
+    summary = write_outputs(result, out, resolved, source_name=source.name, skipped=source.skipped, status=status,
                             extra=extra or None)
     if all_frames and status == "complete":
-        summary["all_frames"] = _localize_all_frames(source, result, frontend, out, progress)
+        summary["all_frames"] = _localize_all_frames(source, result, stages.frontend, out, config.localize, progress)
         atomic_write_bytes(out / "summary.json", json.dumps(summary, indent=2).encode())
-    print_summary(summary, out, stream=sys.stdout)
+    if progress:
+        print_summary(summary, out, stream=sys.stdout)
     if viewer is not None:
         viewer.finish(result, summary)
         if keep_viewer:
@@ -197,12 +242,12 @@ def _live_status(source):
     return on_submap
 
 
-def _localize_all_frames(source, result, frontend, out_dir: Path, progress: bool) -> dict:
+def _localize_all_frames(source, result, frontend, out_dir: Path, settings, progress: bool) -> dict:
     """Poses of every frame into ``trajectory_all.txt``; returns the summary entry."""
     from .io import write_tum_trajectory
     from .localize import localize_frames, split_ate, views_from_pipeline
 
-    poses = localize_frames(source, views_from_pipeline(result), to_grid=frontend.grid_colors, progress=progress)
+    poses = localize_frames(source, views_from_pipeline(result), settings, to_grid=frontend.grid_colors, progress=progress)
     write_tum_trajectory(out_dir / "trajectory_all.txt", poses.timestamps, poses.T_world_cam)
     entry = poses.summary()
     if poses.T_world_cam_gt is not None and len(poses.timestamps) >= 3:
@@ -247,14 +292,6 @@ class _stop_on_signals:
             signal.signal(signum, handler)
 
 
-def _device(config: SLAMConfig) -> str:
-    if config.vggt.device != "auto":
-        return config.vggt.device
-    import torch
-
-    return "cuda" if torch.cuda.is_available() else "cpu"
-
-
 def print_summary(summary: dict, out_dir: Path, stream=sys.stdout) -> None:
     counts = summary["counts"]
     line = (f"{counts.get('frames', 0)} frames, {counts.get('keyframes', 0)} keyframes, {counts.get('submaps', 0)} submaps, "
@@ -271,16 +308,14 @@ def print_summary(summary: dict, out_dir: Path, stream=sys.stdout) -> None:
         dropped["unreadable"] = skipped
     if dropped:
         print("dropped frames: " + ", ".join(f"{v} {k}" for k, v in dropped.items()) + " (see summary.json)", file=stream)
-    mode = summary.get("config", {}).get("upgrade", {}).get("mode")
-    if not summary.get("metric_upgrade") and (mode == "off" or (mode == "auto" and summary.get("graph", {}).get("design") != "submap")):
-        print("metric upgrade: off" + (" (auto: it is for the submap graph, whose map inherits one projective distortion; "
-                                       "--metric-upgrade on applies it here too)" if mode == "auto" else ""), file=stream)
+    if not summary.get("resolved", {}).get("metric_upgrade", True):
+        print("metric upgrade: off (see the settings line at the start, or summary.json \"resolved\")", file=stream)
     for upgrade in summary.get("metric_upgrade", []):
         state = (f"applied, focal {upgrade['focal_px']:.1f} px, constraint residual {upgrade['residual_before']:.3g} -> "
                  f"{upgrade['residual_after']:.3g}") if upgrade["applied"] else f"skipped: {upgrade['reason']}"
         print(f"metric upgrade{' of segment ' + str(upgrade['segment']) if upgrade['segment'] else ''}: {state}", file=stream)
     if "ate" in summary:
-        print(f"ATE RMSE {summary['ate']['rmse']:.4f} m (Sim(3)-aligned, {summary['ate']['poses']} keyframes)", file=stream)
+        print(f"ATE RMSE {format_length(summary['ate']['rmse'])} (Sim(3)-aligned, {summary['ate']['poses']} keyframes)", file=stream)
     if "live" in summary:
         print(f"live: {summary['live']['delivered']} frames processed, {summary['live']['dropped']} dropped", file=stream)
     if "all_frames" in summary:
@@ -288,6 +323,19 @@ def print_summary(summary: dict, out_dir: Path, stream=sys.stdout) -> None:
         line = (f"all frames: {info['localized']} localized ({info['ms_per_frame_median']:.1f} ms each), "
                 f"{len(info['failed'])} failed (listed in summary.json); trajectory_all.txt")
         if "ate" in info:
-            line += f"; ATE RMSE {info['ate']['non_keyframes']:.4f} non-keyframes, {info['ate']['keyframes']:.4f} keyframes"
+            line += (f"; ATE RMSE {format_length(info['ate']['non_keyframes'])} non-keyframes, "
+                     f"{format_length(info['ate']['keyframes'])} keyframes")
         print(line, file=stream)
+    for note in summary.get("notes", []):
+        print(f"note: {note}", file=stream)
     print(f"outputs in {out_dir}", file=stream)
+
+
+def format_length(metres: float) -> str:
+    """A length with the unit that shows its first digits: "0.0312 m", "4.21 mm", "9.03 µm"."""
+    size = abs(metres)
+    if size >= 0.01 or size == 0:
+        return f"{metres:.4f} m"
+    if size >= 1e-5:
+        return f"{metres * 1e3:.3g} mm"
+    return f"{metres * 1e6:.3g} µm"

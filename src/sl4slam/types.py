@@ -104,28 +104,49 @@ class SubmapPrediction:
         return int(self.depth.shape[0])
 
 
+@dataclass(frozen=True)
+class FrontendCapabilities:
+    """What a frontend can do, declared by it (never guessed from its signature).
+
+    Attributes:
+        scores_pairs: it returns image-match ratios of slot pairs when asked
+            (``reconstruct(..., match_pairs=...)``), which the attention loop check reads.
+        needs_ground_truth: it reads depth and poses from the frames (the simulator); the pipeline
+            skips frames without them and refuses sources that have none.
+        predicts_intrinsics: the model itself predicts each frame's focal length (VGGT, Depth
+            Anything 3); ``False`` where the adapter recovers it from the points (π³).
+        accepts_intrinsics: the model can be conditioned on a known calibration
+            (``reconstruct(..., intrinsics=...)``: Pi3X, Depth Anything 3).
+    """
+
+    scores_pairs: bool = False
+    needs_ground_truth: bool = False
+    predicts_intrinsics: bool = True
+    accepts_intrinsics: bool = False
+
+
 @runtime_checkable
 class Frontend(Protocol):
     """Feed-forward reconstruction of a short window of frames into one submap.
 
     Attributes:
         name: for messages and caches.
-        requires_ground_truth: the frontend reads depth and poses from the frames (the simulator);
-            the pipeline skips frames without them, and refuses sources that have none.
+        capabilities: what it can do (:class:`FrontendCapabilities`), declared by the class.
     """
 
     name: str
-    requires_ground_truth: bool
+    capabilities: FrontendCapabilities
 
     def reconstruct(self, frames: Sequence[Frame], submap_id: int) -> SubmapPrediction:
         """Reconstruct ``frames`` (in order; the first defines the submap frame).
 
         ``submap_id`` lets stochastic frontends (the simulator) draw reproducible,
-        submap-specific noise; deterministic models ignore it. The pipeline passes a keyword
-        ``match_pairs`` (a list of slot pairs) only when the loop check wants image-match ratios
-        (``SubmapPrediction.match_ratios``); frontends that can score pairs accept it, and a
-        frontend without the keyword runs without the attention check
-        (``sl4slam.pipeline.scores_matches``).
+        submap-specific noise; deterministic models ignore it. Keywords a frontend takes when its
+        capabilities say so: ``match_pairs`` (a list of slot pairs; ``scores_pairs``), whose
+        image-match ratios it returns in ``SubmapPrediction.match_ratios``; ``intrinsics``
+        (``(S, 3, 3)`` known K of the input frames in their own pixels; ``accepts_intrinsics``).
+        A ``UserError`` means the settings cannot work (it ends the run); any other exception is
+        a failure on these frames (the submap is skipped).
         """
         ...
 

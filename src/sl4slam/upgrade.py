@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Mapping
 
 import numpy as np
@@ -55,12 +56,22 @@ from scipy.optimize import least_squares
 
 from .config import UpgradeConfig
 from .errors import UserError
-from .geometry import apply_transform, decompose_projection, normalize_sl4, rq_decomposition
+from .geometry import decompose_projection, normalize_sl4, rq_decomposition
 
 NUM_CALIBRATION = 5
 """Free entries of the upper-triangular ``A`` (``A_33 = 1``)."""
 NUM_GEOMETRY = NUM_CALIBRATION + 3
 """``A`` and the plane at infinity ``p``: the 8 degrees of freedom of a projective-to-metric upgrade."""
+
+
+class UpgradeStatus(str, Enum):
+    """What :func:`estimate_metric_upgrade` did."""
+
+    APPLIED = "applied"
+    ALREADY_METRIC = "already metric"
+    """Skipped: the cameras already satisfy the constraints to within the upgrade's own noise."""
+    SKIPPED = "skipped"
+    """Skipped for another reason (too few or inconsistent cameras, degenerate motion, no gain)."""
 
 
 @dataclass
@@ -70,7 +81,7 @@ class MetricUpgrade:
     Attributes:
         H_metric_world: ``(4, 4)`` SL(4) map of world points into the metric frame
             (``X_metric ~ H X_world``; cameras become ``P H^-1``); the identity when skipped.
-        applied: whether ``H_metric_world`` is a real upgrade (false: skipped, identity).
+        status: applied, already metric, or skipped.
         reason: why it was skipped (a short phrase for a run summary); ``"applied"`` otherwise.
         residual_before: RMS over the kept cameras (all cameras when no fit ran) and over the four
             unitless constraints of :func:`intrinsic_constraint_residuals` (skew / f,
@@ -90,7 +101,7 @@ class MetricUpgrade:
     """
 
     H_metric_world: np.ndarray
-    applied: bool
+    status: UpgradeStatus
     reason: str
     residual_before: float
     residual_after: float
@@ -103,10 +114,16 @@ class MetricUpgrade:
     details: dict = field(default_factory=dict)
     """Diagnostics: the fit's own residual, the start it came from, inlier count, f0."""
 
+    @property
+    def applied(self) -> bool:
+        """Whether ``H_metric_world`` is a real upgrade (false: skipped, identity)."""
+        return self.status is UpgradeStatus.APPLIED
+
     def summary(self) -> dict:
         """Plain JSON-friendly figures for a run summary."""
         return {
             "applied": self.applied,
+            "status": self.status.value,
             "reason": self.reason,
             "residual_before": round(self.residual_before, 6),
             "residual_after": round(self.residual_after, 6),
@@ -376,8 +393,7 @@ def estimate_metric_upgrade(
         UserError: malformed input (shapes, NaN, singular cameras) or settings.
     """
     start = time.perf_counter()
-    config = config if config is not None else UpgradeConfig()
-    config.validate()
+    config = config if config is not None else UpgradeConfig()  # checked by sl4slam.resolve in a run
     P, pp, sizes, scene_scale = _check_inputs(P_world, principal_points, image_sizes, scene_scale)
     N = len(P)
     K_in, T_in, C_in = decompose_projection(P) if N else (np.zeros((0, 3, 3)), np.zeros((0, 4, 4)), np.zeros((0, 3)))
@@ -385,11 +401,11 @@ def estimate_metric_upgrade(
     focals_in = np.sqrt(K_in[:, 0, 0] * K_in[:, 1, 1])
 
     def skipped(reason: str, inliers: np.ndarray | None = None, condition: float = 0.0, uncertainty: float = float("inf"),
-                **details) -> MetricUpgrade:
+                status: UpgradeStatus = UpgradeStatus.SKIPPED, **details) -> MetricUpgrade:
         kept = inliers if inliers is not None and inliers.any() else np.ones(N, dtype=bool)
         before = _rms(constraints_in[kept])
         return MetricUpgrade(
-            H_metric_world=np.eye(4), applied=False, reason=reason, residual_before=before, residual_after=before,
+            H_metric_world=np.eye(4), status=status, reason=reason, residual_before=before, residual_after=before,
             focal=float(np.median(focals_in[kept])) if N else 0.0, focals=focals_in, condition=float(condition),
             uncertainty=float(uncertainty),
             inliers=inliers if inliers is not None else np.zeros(N, dtype=bool),
@@ -454,7 +470,7 @@ def estimate_metric_upgrade(
     details = {"start": best_start, "f0": f0, "fit_rms": _rms(final.fun), "kept": int(inliers.sum())}
     if before < config.metric_residual:
         return skipped(f"already metric (constraint residual {before:.2g} < {config.metric_residual:g})", inliers,
-                       condition, uncertainty, **details)
+                       condition, uncertainty, UpgradeStatus.ALREADY_METRIC, **details)
     if not after <= config.max_residual_ratio * before:
         return skipped(f"no clear improvement (constraint residual {before:.2g} -> {after:.2g})", inliers, condition, uncertainty,
                        **details)
@@ -464,7 +480,7 @@ def estimate_metric_upgrade(
                        "distortion removed)", inliers, condition, uncertainty, **details)
     focals = np.sqrt(K_out[:, 0, 0] * K_out[:, 1, 1])
     return MetricUpgrade(
-        H_metric_world=H, applied=True, reason="applied", residual_before=before, residual_after=after,
+        H_metric_world=H, status=UpgradeStatus.APPLIED, reason="applied", residual_before=before, residual_after=after,
         focal=float(np.median(focals[inliers])), focals=focals, condition=condition, uncertainty=uncertainty, inliers=inliers,
         seconds=time.perf_counter() - start, details=details,
     )
@@ -537,28 +553,11 @@ def _similarity_gauge(H: np.ndarray, P: np.ndarray, T_in: np.ndarray, C_in: np.n
         return None
 
 
-def upgrade_cameras(P_world: np.ndarray, H_metric_world: np.ndarray) -> np.ndarray:
-    """Cameras ``(..., 3, 4)`` in the metric frame: ``P H^-1``."""
-    return np.asarray(P_world, dtype=np.float64) @ np.linalg.inv(np.asarray(H_metric_world, dtype=np.float64))
-
-
-def upgrade_points(X_world: np.ndarray, H_metric_world: np.ndarray) -> np.ndarray:
-    """Points in the metric frame: homogeneous ``(..., 4)`` -> ``H X`` ``(..., 4)``; Euclidean
-    ``(..., 3)`` -> ``(..., 3)`` after division (``geometry.apply_transform``)."""
-    X = np.asarray(X_world, dtype=np.float64)
-    H = np.asarray(H_metric_world, dtype=np.float64)
-    if X.shape[-1] == 4:
-        return X @ H.T
-    if X.shape[-1] == 3:
-        return apply_transform(H, X)
-    raise UserError(f"points must have 3 (Euclidean) or 4 (homogeneous) coordinates, got shape {X.shape}")
-
-
 def upgrade_graph_nodes(H_world_submap: Mapping[int, np.ndarray] | np.ndarray, H_metric_world: np.ndarray):
     """Graph nodes in the metric frame: ``H_metric_world @ H_world_submap`` for a dict
     ``{submap_id: (4, 4)}`` (returns a dict) or an ``(M, 4, 4)`` array. Both factors are in SL(4),
-    so the nodes stay in SL(4), and every keyframe camera ``K [R|t] H_world_submap^-1`` becomes
-    ``P H_metric_world^-1`` exactly as :func:`upgrade_cameras` gives it."""
+    so the nodes stay in SL(4), and every keyframe camera ``P = K [R|t] H_world_submap^-1`` becomes
+    ``P H_metric_world^-1``."""
     H = np.asarray(H_metric_world, dtype=np.float64)
     if isinstance(H_world_submap, Mapping):
         return {key: H @ np.asarray(node, dtype=np.float64) for key, node in H_world_submap.items()}

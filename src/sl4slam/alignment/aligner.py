@@ -26,12 +26,17 @@ from abc import abstractmethod
 
 import numpy as np
 
-from ..config import AlignmentConfig, SLAMConfig, alignment_model
+from typing import TYPE_CHECKING
+
+from ..config import AlignmentConfig, SLAMConfig
 from ..edges import is_camera_link
 from ..types import Aligner, Alignment, FrameView
 from .camera_constrained import camera_constrained_sl4
 from .ransac import estimate_sim3, estimate_sl4, relief, transfer_errors
 from .sim3 import calibration_scale_link, sim3_from_shared_frame
+
+if TYPE_CHECKING:
+    from ..resolve import ResolvedConfig
 
 
 def shared_pixels(view_a: FrameView, view_b: FrameView, limit: int) -> np.ndarray:
@@ -238,6 +243,10 @@ ALIGNERS: dict[str, type[PointAligner]] = {
     "sim3-cameras": Sim3CameraAligner}
 
 
-def make_aligner(config: SLAMConfig) -> Aligner:
-    """The aligner of ``config.alignment.model`` ("auto": the one that fits ``config.backend.kind``)."""
-    return ALIGNERS[alignment_model(config)](config.alignment)
+def make_aligner(config: "ResolvedConfig | SLAMConfig") -> Aligner:
+    """The aligner of a run's settled alignment model (``sl4slam.resolve``: "auto" is the one that
+    fits the graph)."""
+    from ..resolve import resolve
+
+    resolved = resolve(config)
+    return ALIGNERS[resolved.alignment.value](resolved.config.alignment)

@@ -1,28 +1,38 @@
-"""Factor-graph backends: the submap graph in SL(4) (the paper) or Sim(3) (for comparison), and the
-keyframe graph in SL(4) (VGGT-SLAM 2.0, ``sl4slam.backend.keyframe``).
+"""Factor-graph backends: the interface the pipeline talks to (``interface``), the iSAM2 pose-graph
+engine in SL(4) and Sim(3) (``pose_graph``, ``sl4``, ``sim3``), and the two graph designs on it:
+the submap graph (VGGT-SLAM, ``submap``) and the keyframe graph (VGGT-SLAM 2.0, ``keyframe``).
 
-``Backend`` is the interface the pipeline talks to; ``make_backend`` builds the one a config names.
-``sl4slam.backend.evidence`` turns an alignment into the information matrix of its edge.
+``make_backend`` builds the graph a resolved config names; ``sl4slam.backend.evidence`` turns an
+alignment into the information matrix of its edge.
 """
 
 from __future__ import annotations
 
 from ..config import BackendConfig
-from .base import Backend, BackendUpdateError, FactorGraphBackend, SubmapFrames, WorldEstimate
+from ..registry import GraphEntry, register_graph
+from .interface import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
 from .keyframe import KeyframeBackend
-from .sim3 import Sim3Backend
-from .sl4 import SL4Backend
+from .pose_graph import PoseGraph
+from .sim3 import Sim3PoseGraph
+from .sl4 import SL4PoseGraph
+from .submap import Sim3Backend, SL4Backend, SubmapBackend
 
-__all__ = ["Backend", "BackendUpdateError", "FactorGraphBackend", "KeyframeBackend", "SL4Backend", "Sim3Backend",
-           "SubmapFrames", "WorldEstimate", "make_backend"]
+__all__ = ["Backend", "BackendUpdateError", "KeyframeBackend", "PoseGraph", "SL4Backend", "SL4PoseGraph", "Sim3Backend",
+           "Sim3PoseGraph", "SubmapBackend", "SubmapFrames", "WorldEstimate", "make_backend"]
 
 
-def make_backend(config: BackendConfig) -> Backend:
-    """The graph design ``config.design`` ("submap" or "keyframe") in the group ``config.kind``
-    ("sl4" or "sim3"); ``UserError`` for bad settings."""
-    config.validate()
-    if config.design == "keyframe":
+def make_backend(config: BackendConfig, design: str | None = None) -> Backend:
+    """The graph design ``design`` ("submap" or "keyframe"; default: ``config.graph``, which must
+    then be settled, as in a resolved config) in the group ``config.kind`` ("sl4" or "sim3")."""
+    design = design or config.graph
+    if design == "keyframe":
         return KeyframeBackend(config)
-    if config.kind == "sim3":
-        return Sim3Backend(config)
-    return SL4Backend(config)
+    if design != "submap":
+        raise ValueError(f"unknown graph design {design!r} (resolve the config first: 'auto' is settled there)")
+    return Sim3Backend(config) if config.kind == "sim3" else SL4Backend(config)
+
+
+register_graph(GraphEntry("keyframe", lambda resolved: make_backend(resolved.config.backend, "keyframe"),
+                          "VGGT-SLAM 2.0: a node per keyframe, calibration links between submaps", ("sl4",)))
+register_graph(GraphEntry("submap", lambda resolved: make_backend(resolved.config.backend, "submap"),
+                          "VGGT-SLAM: a node per submap, 15-DOF (or Sim(3)) links", ("sl4", "sim3")))

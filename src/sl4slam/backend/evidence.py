@@ -2,7 +2,7 @@
 
 An alignment ``X_a ~ H X_b`` (submap ``a`` the older node ``i``, ``b`` the newer ``j``) enters the
 graph as the factor ``(j, i, Z = H^-1)`` whose noise lives in the tangent space of ``Z``
-(``Z_true = Z exp(xi)``, GTSAM's convention; see ``sl4slam.backend.base``). With ``H_true =
+(``Z_true = Z exp(xi)``, GTSAM's convention; see ``sl4slam.backend.pose_graph``). With ``H_true =
 exp(-xi) H`` the transfer residual of inlier ``k`` is ``r_k(xi) = pi(exp(-xi) Y_k) - X_a,k`` with
 ``Y_k = H [X_b,k; 1]`` and ``pi`` the homogeneous division, so its Jacobian column for generator
 ``G_m`` is

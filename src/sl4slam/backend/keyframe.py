@@ -6,7 +6,7 @@ and its submap's points reach the world through ``X_n T_cam_submap`` (so a subma
 ``H_world_submap`` corresponds to ``X_n T_cam_submap`` of any of its keyframes). The shared frame of two
 consecutive submaps has a node in each.
 
-Factors (``x_a ~ Z x_b`` read as in ``sl4slam.backend.base``, whose factor residual they use):
+Factors (``x_a ~ Z x_b`` read as in ``sl4slam.backend.pose_graph``, whose factor residual they use):
 
 - inside a submap, between consecutive keyframes ``a`` and ``b``: the frontend's relative pose
   ``T_cam_a_submap T_cam_b_submap^-1`` (rigid), isotropic ``BackendConfig.frame_sigma``;
@@ -27,8 +27,8 @@ Without loops the graph is a tree (chains joined by single links), so every fact
 and the estimate equals the submap graph's with the same odometry measurements, whatever the sigmas:
 the designs differ only where loops close, where this graph also bends the links inside submaps.
 
-Incremental: the nodes live in an iSAM2 graph (:class:`~sl4slam.backend.sl4.SL4Backend` with node
-numbers as ids); a submap adds a chain of nodes hanging off the previous submap's last node, which
+Incremental: the nodes live in the iSAM2 pose-graph engine (:class:`~sl4slam.backend.sl4.SL4PoseGraph`,
+node numbers as ids); a submap adds a chain of nodes hanging off the previous submap's last node, which
 iSAM2 eliminates at the top of its Bayes tree, so the cost of a submap does not grow with the map.
 A failed update is rolled back (nodes and submaps) before :class:`BackendUpdateError` is raised.
 """
@@ -41,8 +41,9 @@ import numpy as np
 
 from ..config import BackendConfig
 from ..geometry import normalize_sl4, se3_inverse, to_4x4
-from .base import Backend, BackendUpdateError, SubmapFrames, WorldEstimate, transport_information
-from .sl4 import SL4Backend
+from .interface import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
+from .pose_graph import transport_information
+from .sl4 import SL4PoseGraph
 
 
 @dataclass
@@ -71,11 +72,11 @@ class KeyframeBackend(Backend):
 
     kind = "sl4"
     dim = 15
+    design = "keyframe"
 
     def __init__(self, config: BackendConfig) -> None:
-        config.validate()
         self.config = config
-        self.nodes = SL4Backend(config, revisit_priors=config.revisit_priors)
+        self.nodes = SL4PoseGraph(config, revisit_priors=config.revisit_priors)
         self._generators = self.nodes.generators()
         self._frame_information = np.eye(self.dim) / config.frame_sigma**2
         self._submaps: dict[int, _Submap] = {}
@@ -106,7 +107,7 @@ class KeyframeBackend(Backend):
         """Consecutive keyframes of a submap: their relative pose, isotropic ``frame_sigma``."""
         T = frames.T_cam_submap
         for k in range(1, len(nodes)):
-            self.nodes.add_submap(nodes[k], T[k - 1] @ se3_inverse(T[k]), self._frame_information)
+            self.nodes.add_node(nodes[k], T[k - 1] @ se3_inverse(T[k]), self._frame_information)
 
     def _register(self, submap_id: int, nodes: list[int], frames: SubmapFrames, segment: bool) -> None:
         self._submaps[submap_id] = _Submap(nodes, frames)
@@ -138,7 +139,7 @@ class KeyframeBackend(Backend):
             T_prev = previous.frames.T_cam_submap[-1]
             link = T_prev @ np.asarray(H_prev_cur, dtype=np.float64) @ se3_inverse(T[0])
             moved = None if information is None else transport_information(information, T_prev, self._generators)
-            self.nodes.add_submap(nodes[0], normalize_sl4(link), moved)
+            self.nodes.add_node(nodes[0], normalize_sl4(link), moved)
         self._chain(nodes, frames)
         self._register(submap_id, nodes, frames, segment=not self._order)
 
@@ -181,8 +182,8 @@ class KeyframeBackend(Backend):
         return self.nodes.loop_chi2(node_i, node_j, H, moved)
 
     def update(self) -> None:
-        """One iSAM2 step (see :meth:`FactorGraphBackend.update`); on failure the submaps added
-        since the last update are dropped with their nodes."""
+        """One iSAM2 step (see :meth:`PoseGraph.update`); on failure the submaps added since the last
+        update are dropped with their nodes."""
         try:
             self.nodes.update()
         except BackendUpdateError:
@@ -193,6 +194,8 @@ class KeyframeBackend(Backend):
                     self._segments.remove(submap_id)
             self._pending = []
             raise
+        finally:
+            self.last_update_seconds = self.nodes.last_update_seconds
         self._pending = []
 
     # ------------------------------------------------------------------ results
@@ -201,7 +204,7 @@ class KeyframeBackend(Backend):
         if submap_id not in self._submaps:
             raise KeyError(f"submap {submap_id} was not added")
         submap = self._submaps[submap_id]
-        return normalize_sl4(self.nodes.H_world_submap(submap.nodes[0]) @ submap.frames.T_cam_submap[0])
+        return normalize_sl4(self.nodes.estimate(submap.nodes[0]) @ submap.frames.T_cam_submap[0])
 
     def world_estimate(self, final: bool = False) -> WorldEstimate:
         """Every submap and every keyframe (through its own node), from iSAM2 or polished (``final``).
@@ -209,7 +212,7 @@ class KeyframeBackend(Backend):
         Vectorized over the nodes (thousands of them): ``X_n T_cam_submap`` for all at once.
         """
         X = self.nodes.estimate_matrices(final)
-        row = {node: k for k, node in enumerate(self.nodes.submap_ids)}
+        row = {node: k for k, node in enumerate(self.nodes.node_ids)}
         nodes, T, frame_of, first = [], [], [], []
         for submap_id in self._order:
             submap = self._submaps[submap_id]
@@ -223,19 +226,13 @@ class KeyframeBackend(Backend):
         per_keyframe = {f: H[i] for i, f in enumerate(frame_of) if f is not None}
         return WorldEstimate(per_submap, per_keyframe)
 
-    def estimates(self) -> dict[int, np.ndarray]:
-        return self.world_estimate().H_world_submap
-
-    def final_estimates(self) -> dict[int, np.ndarray]:
-        return self.world_estimate(final=True).H_world_submap
-
     @property
     def num_submaps(self) -> int:
         return len(self._order)
 
     @property
     def num_nodes(self) -> int:
-        return self.nodes.num_submaps
+        return self.nodes.num_nodes
 
     @property
     def num_loops(self) -> int:

@@ -1,4 +1,4 @@
-"""Sim(3) backend: 7-DOF similarity submap transforms, so loop closures can correct scale drift."""
+"""The pose-graph engine in Sim(3): 7-DOF similarity transforms, so loop closures can correct scale drift."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import gtsam
 import numpy as np
 
 from ..geometry import project_to_so3, sim3_decompose
-from .base import FactorGraphBackend, check_matrix
+from .pose_graph import PoseGraph, check_matrix
 
 ORTHOGONALITY_TOLERANCE = 1e-6
 """Largest ``|R^T R - I|`` entry accepted for the rotation part of a similarity input."""
@@ -33,7 +33,7 @@ def similarity_from_gtsam(S: gtsam.Similarity3) -> np.ndarray:
     return T
 
 
-class Sim3Backend(FactorGraphBackend):
+class Sim3PoseGraph(PoseGraph):
     """Nodes and factors in ``gtsam.Similarity3``; inputs are ``[sR t; 0 1]`` with ``s > 0``."""
 
     kind = "sim3"

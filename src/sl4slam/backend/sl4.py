@@ -1,4 +1,4 @@
-"""SL(4) backend: 15-DOF projective submap transforms, the paper's factor graph (section 4.4)."""
+"""The pose-graph engine in SL(4): 15-DOF projective transforms, the paper's factor graph (section 4.4)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import gtsam
 import numpy as np
 
 from ..geometry import normalize_sl4
-from .base import FactorGraphBackend, check_matrix
+from .pose_graph import PoseGraph, check_matrix
 
 
-class SL4Backend(FactorGraphBackend):
+class SL4PoseGraph(PoseGraph):
     """Nodes and factors in ``gtsam.SL4``; inputs are any 4x4 with det > 0 (scaled to det = 1).
 
     ``gtsam.SL4`` rescales its input by ``det^(1/4)`` and, for ``det <= 0``, silently flips a

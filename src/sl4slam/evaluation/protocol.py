@@ -48,7 +48,7 @@ from .executors import Executor, cpu_count, limit_threads, make_executor
 
 log = logging.getLogger("sl4slam")
 
-SEEDED_SETTINGS = ("sim.seed", "alignment.seed")
+SEEDED_SETTINGS = ("sim.seed", "alignment.seed", "retrieval.seed", "false_loops.seed", "output.seed")
 """Every setting that seeds a random choice; run ``r`` sets each of them to ``r``."""
 RESULT_FILE = "result.json"
 CACHE_KEY_FILE = "key.json"
@@ -208,34 +208,38 @@ def seeded(config: SLAMConfig, run: int) -> SLAMConfig:
 def frontend_cache_key(config: SLAMConfig, sequence: Sequence) -> dict:
     """The settings that decide what the frontend returns for a sequence (see the module docstring).
 
-    Which frames a submap holds depends on the frame selection (stride, max_frames), the keyframe
+    Which frames a submap holds depends on the frame selection (``[source]``), the keyframe
     selector, the submap size and loop slots, and the retrieval (with its seed, for ORB); what
-    the frontend returns for them on its own settings (all of ``sim`` including its seed; ``vggt``
-    except the device, so a cache recorded on a GPU replays on a CPU). With simulated false loops
-    (``sim.false_loop_rate``) the ``sim`` settings also decide the loop frames. Backend, alignment,
-    confidence and output settings are not part of it: changing them reuses the cache.
+    the frontend returns for them on its own settings (all of ``sim``, resolved from its profile,
+    including its seed; ``[model]`` for a model, which excludes the device, so a cache recorded on
+    a GPU replays on a CPU). Injected false loops (``[false_loops]``) also decide the loop frames.
+    Backend, alignment, confidence and output settings are not part of it: changing them reuses
+    the cache.
     """
+    from ..resolve import resolve
+
+    resolved = resolve(config, probe_device=False)
+    settled = resolved.config
     retrieval: dict[str, Any] = {"kind": "none"}
-    if config.submap.w_loop > 0 and config.retrieval.kind != "none":
-        retrieval = {k: v for k, v in dataclasses.asdict(config.retrieval).items() if k != "min_loop_inlier_ratio"}
-        if config.retrieval.kind in ("orb", "auto"):  # ORB's vocabulary and verification are seeded
-            retrieval["seed"] = config.alignment.seed
-    if config.frontend == "simulated":
-        frontend = dataclasses.asdict(config.sim)
+    if settled.submap.w_loop > 0 and resolved.retrieval.value != "none":
+        retrieval = dataclasses.asdict(settled.retrieval)
+        if resolved.retrieval.value != "orb":  # only ORB's vocabulary and verification are seeded
+            retrieval.pop("seed")
+        if settled.false_loops.rate > 0:
+            # injected wrong places change which loop frames are asked for, whatever the frontend
+            retrieval["false_loops"] = dataclasses.asdict(settled.false_loops)
+    if resolved.frontend.settings == "sim":
+        frontend = dataclasses.asdict(settled.sim)
     else:
-        frontend = {k: v for k, v in dataclasses.asdict(config.vggt).items() if k != "device"}
-        frontend["use_point_head"] = config.submap.use_point_head
-    if retrieval["kind"] != "none" and config.sim.false_loop_rate > 0:
-        # injected wrong places change which loop frames are asked for, whatever the frontend
-        retrieval["false_loops"] = dataclasses.asdict(config.sim)
+        frontend = {**dataclasses.asdict(settled.model), "use_point_head": settled.submap.use_point_head}
     return {
         "dataset": sequence.dataset,
         "sequence": sequence.name,
-        "frames": {"stride": config.stride, "max_frames": config.max_frames},
-        "keyframes": dataclasses.asdict(config.keyframes),
-        "submap": {"size": config.submap.size, "w_loop": config.submap.w_loop},
+        "frames": dataclasses.asdict(settled.source),
+        "keyframes": dataclasses.asdict(settled.keyframes),
+        "submap": {"size": settled.submap.size, "w_loop": settled.submap.w_loop},
         "retrieval": retrieval,
-        "frontend": config.frontend,
+        "frontend": resolved.frontend.name,
         "frontend_settings": frontend,
     }
 
@@ -297,7 +301,7 @@ def keyframe_clouds(run_dir: Path, dataset: Dataset, sequence: Sequence, config:
     files = sorted(p for p in (run_dir / "keyframes").glob("*.npz") if p.stem.isdigit())
     if not files:
         raise UserError(f"{run_dir} has no keyframes/*.npz; dense metrics need output.save_keyframe_points")
-    source = dataset.open(sequence, stride=config.stride, max_frames=config.max_frames)
+    source = dataset.open(sequence, stride=config.source.stride, max_frames=config.source.max_frames)
     estimate, truth, used = [], [], 0
     for path in files:
         with np.load(path) as keyframe:
@@ -368,7 +372,8 @@ def _import_pipeline() -> None:
     import evo.core.sync  # noqa: F401
     import torch  # noqa: F401  (the runner asks it for the device)
 
-    from .. import frontend, outputs, pipeline, retrieval  # noqa: F401
+    from .. import frontend, pipeline, retrieval  # noqa: F401
+    from ..result import outputs  # noqa: F401
     from . import metrics  # noqa: F401
 
 
@@ -477,18 +482,22 @@ class EvalOutcome:
 
 
 def _needs_gpu(config: SLAMConfig) -> bool:
-    return config.frontend == "vggt" and config.vggt.device != "cpu"
+    from ..registry import frontend_entry
+
+    return frontend_entry(config.frontend).weights is not None and config.device != "cpu"
 
 
 def _check_configs(configs: list[SLAMConfig], needs_model: bool) -> None:
     """Every grid point's settings, and the model weights when a run will need them (one line each)."""
-    for config in configs:
-        config.validate()
+    from ..resolve import resolve
+
+    resolved = [resolve(config, probe_device=False) for config in configs]
     if needs_model:
         from ..models.hub import resolve_weights
 
-        for weights in sorted({c.vggt.weights for c in configs if c.frontend == "vggt"}):
-            resolve_weights(weights)
+        for weights, source in sorted({(r.config.model.weights, r.frontend.weights) for r in resolved
+                                       if r.frontend.weights is not None}, key=lambda pair: pair[0]):
+            resolve_weights(weights, source=source)
 
 
 def evaluate(
@@ -552,7 +561,7 @@ def evaluate(
     results: list[dict | None] = [_reuse(task, finished) for task in tasks]
     todo = [i for i, r in enumerate(results) if r is None]
     waves = _plan_recordings(tasks, todo, stores, store if record else None)
-    needs_model = any(tasks[i].replay_dir is None and tasks[i].config["frontend"] == "vggt" for i in todo)
+    needs_model = any(tasks[i].replay_dir is None and tasks[i].config["frontend"] != "simulated" for i in todo)
     _check_configs(point_configs, needs_model and not ray)
 
     description = "nothing to run"

@@ -26,6 +26,7 @@ import numpy as np
 
 from ..config import SLAMConfig, config_to_dict
 from .datasets import get_dataset
+from .protocol import SEEDED_SETTINGS
 
 if TYPE_CHECKING:  # pragma: no cover
     from .protocol import EvalOutcome, EvalSettings
@@ -172,7 +173,7 @@ def changed_settings(config: SLAMConfig) -> dict:
         return out
 
     defaults, current = flatten(config_to_dict(SLAMConfig())), flatten(config_to_dict(config))
-    decided_by_the_evaluation = ("sim.seed", "alignment.seed", "output.save_keyframe_points", "output.cache_frontend")
+    decided_by_the_evaluation = (*SEEDED_SETTINGS, "output.save_keyframe_points", "output.cache_frontend")
     return {k: v for k, v in current.items() if defaults.get(k) != v and k not in decided_by_the_evaluation}
 
 
@@ -307,7 +308,7 @@ def write_report(out_dir: Path, outcome: "EvalOutcome", settings: "EvalSettings"
         "dataset": settings.dataset,
         "settings": dataclasses.asdict(settings),
         "config": config_to_dict(config),
-        "seeded_settings": "run r sets sim.seed = alignment.seed = r",
+        "seeded_settings": "run r sets " + " = ".join(SEEDED_SETTINGS) + " = r",
         "grid": [{"label": p.label, "folder": p.slug, "overrides": dict(p.overrides)} for p in outcome.points],
         "sequences": {s.name: str(s.path) for s in outcome.sequences},
         "missing_sequences": outcome.missing,

@@ -19,7 +19,8 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import UserError
-from ..types import Frame, Frontend, SubmapPrediction
+from ..atomic import atomic_write_npz
+from ..types import Frame, Frontend, FrontendCapabilities, SubmapPrediction
 
 _FIELDS = ("depth", "confidence", "T_cam_submap", "K", "colors", "points", "points_confidence", "principal_point",
            "match_pairs", "match_ratios")
@@ -35,7 +36,7 @@ class CachingFrontend:
     def __init__(self, inner: Frontend, directory: str | os.PathLike) -> None:
         self.inner = inner
         self.name = inner.name
-        self.requires_ground_truth = inner.requires_ground_truth
+        self.capabilities = inner.capabilities
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
 
@@ -50,11 +51,8 @@ class CachingFrontend:
         arrays = {k: getattr(prediction, k) for k in _FIELDS if getattr(prediction, k) is not None}
         arrays["frame_indices"] = np.array([f.index for f in frames], dtype=np.int64)
         arrays["frontend"] = np.array(self.inner.name)
-        arrays["requires_ground_truth"] = np.array(self.requires_ground_truth)
-        target = _path(self.directory, submap_id)
-        tmp = target.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, target)
+        arrays["requires_ground_truth"] = np.array(self.capabilities.needs_ground_truth)
+        atomic_write_npz(_path(self.directory, submap_id), arrays)
         return prediction
 
 
@@ -70,8 +68,12 @@ class ReplayFrontend:
         with np.load(sorted(self.directory.glob("submap_*.npz"))[0]) as first:
             recorded_by = str(first["frontend"]) if "frontend" in first.files else ""
             recorded = bool(first["requires_ground_truth"]) if "requires_ground_truth" in first.files else None
-        # Replaying must skip the same frames (e.g. those without ground truth) as recording did.
-        self.requires_ground_truth = recorded if recorded is not None else recorded_by == "simulated"
+            scored = "match_ratios" in first.files
+        # Replaying must skip the same frames (e.g. those without ground truth) as recording did; the
+        # attention check can read only the image-match ratios the recording asked for.
+        self.recorded_by = recorded_by
+        self.capabilities = FrontendCapabilities(
+            scores_pairs=scored, needs_ground_truth=recorded if recorded is not None else recorded_by == "simulated")
         self._color_slots: dict[int, tuple[Path, int]] | None = None
 
     def prepare(self) -> None:

@@ -184,7 +184,7 @@ from scipy.special import ndtr
 from ..config import SimulatorConfig
 from ..errors import UserError
 from ..geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse, unproject_depth
-from ..types import Frame, SubmapPrediction
+from ..types import Frame, FrontendCapabilities, SubmapPrediction
 from .overlap import overlap_match_ratio
 
 # Stream tags for SeedSequence spawn keys: the distortion, the gauge and the per-frame draws (noise,
@@ -215,11 +215,15 @@ class SimulatedFrontend:
     """
 
     name = "simulated"
-    requires_ground_truth = True  # frames without depth, pose or K are skipped by the pipeline
+    # frames without depth, pose or K are skipped by the pipeline; match ratios: the true overlap
+    capabilities = FrontendCapabilities(scores_pairs=True, needs_ground_truth=True, predicts_intrinsics=True)
 
     def __init__(self, config: SimulatorConfig | None = None):
-        self.config = config if config is not None else SimulatorConfig()
-        self.config.validate()
+        """``config``: the corruption settings (magnitudes left at ``None`` come from its profile),
+        checked here too, so that a simulator built by hand gets the one-line errors of a run."""
+        config = config if config is not None else SimulatorConfig()
+        config.validate()
+        self.config = config.resolved()
         self.distortions: dict[int, np.ndarray] = {}
         self.last_distortion: np.ndarray | None = None
 
@@ -608,3 +612,13 @@ def _disk(radius: float) -> np.ndarray:
     r = int(np.floor(radius))
     dy, dx = np.mgrid[-r : r + 1, -r : r + 1]
     return dx**2 + dy**2 <= radius**2
+
+
+def registry_entry():
+    """The simulator in the frontend registry (``sl4slam.registry``)."""
+    from ..registry import FrontendEntry
+
+    return FrontendEntry(
+        name="simulated", build=lambda resolved: SimulatedFrontend(resolved.config.sim),
+        capabilities=SimulatedFrontend.capabilities, settings="sim",
+        description="VGGT-like submaps from an RGB-D sequence's ground truth, with controlled errors (--sim-profile)")

@@ -28,7 +28,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..config import VGGTConfig
+from ..config import ModelConfig
 from ..errors import UserError
 from ..models.vggt.attention import MatchRatioProbe
 from ..models.vggt.memory import (
@@ -41,7 +41,8 @@ from ..models.vggt.model import VGGT
 from ..models.vggt.pose_encoding import pose_encoding_to_extri_intri
 from ..models.vggt.precision import Precision, apply_precision, resolve_precision
 from ..models.vggt.preprocess import GridTransform, preprocess_images, to_uint8_rgb
-from ..types import Frame, SubmapPrediction
+from ..registry import FrontendEntry
+from ..types import Frame, FrontendCapabilities, SubmapPrediction
 
 logger = logging.getLogger(__name__)
 
@@ -76,23 +77,24 @@ class VGGTFrontend:
     """Frontend backed by our VGGT implementation.
 
     Args:
-        config: device, dtype, preprocessing mode and weights (file or hub id).
+        config: dtype, preprocessing mode, memory budget and weights (file or hub id).
         model: an already built :class:`VGGT` (e.g. with random weights in tests); when ``None``
             the weights named by ``config.weights`` are loaded on the first call.
         with_points: also return the point head's map (``SubmapPrediction.points``).
+        match_scores: the loop check will ask for image-match ratios (``config.match_layer`` must
+            then exist in the model, checked when the weights load).
+        device: "auto" (CUDA when available), "cpu", "cuda" or "cuda:N".
     """
 
     name = "vggt"
-    requires_ground_truth = False
+    capabilities = FrontendCapabilities(scores_pairs=True, predicts_intrinsics=True)
 
-    def __init__(self, config: VGGTConfig, model: VGGT | None = None, with_points: bool = False,
-                 match_scores: bool = False) -> None:
-        """``match_scores``: the loop check will ask for image-match ratios (``config.match_layer``
-        must then exist in the model, checked when the weights load)."""
+    def __init__(self, config: ModelConfig, model: VGGT | None = None, with_points: bool = False,
+                 match_scores: bool = False, device: str = "auto") -> None:
         if config.preprocess_mode not in ("crop", "pad"):
             raise UserError(f"unknown VGGT preprocessing mode '{config.preprocess_mode}': use crop or pad")
         self.config = config
-        self.device = resolve_device(config.device)
+        self.device = resolve_device(device)
         self.precision = resolve_mode(config.dtype, self.device)
         self.compute_dtype = self.precision.autocast or torch.float32
         self.with_points = with_points
@@ -125,10 +127,12 @@ class VGGTFrontend:
     def model(self) -> VGGT:
         """The model, loaded from ``config.weights`` on first use."""
         if self._model is None:
+            from ..models.hub import VGGT_WEIGHTS
             from ..models.vggt.weights import load_vggt
 
             # The checkpoint's own dtype (memory-mapped): each weight is converted once, in _prepare.
-            model = load_vggt(self.config.weights, device="cpu", dtype=None)
+            weights = VGGT_WEIGHTS.repo_id if self.config.weights == "auto" else self.config.weights
+            model = load_vggt(weights, device="cpu", dtype=None)
             if not self.with_points:
                 model.point_head = None  # its weights are never read
             self._model = self._prepare(model)
@@ -205,3 +209,24 @@ class VGGTFrontend:
             prediction.points = outputs["world_points"][0].float().cpu().numpy()
             prediction.points_confidence = outputs["world_points_conf"][0].float().cpu().numpy()
         return prediction
+
+
+def registry_entry() -> FrontendEntry:
+    """VGGT-1B in the frontend registry (``sl4slam.registry``)."""
+    from ..models.hub import VGGT_WEIGHTS
+
+    def build(resolved) -> VGGTFrontend:
+        return VGGTFrontend(resolved.config.model, with_points=resolved.config.submap.use_point_head,
+                            match_scores=resolved.attention_check, device=resolved.device)
+
+    return FrontendEntry(
+        name="vggt", build=build, capabilities=VGGTFrontend.capabilities,
+        description="VGGT-1B (Wang et al., CVPR 2025): cameras, depth and points of every frame; the paper's model",
+        weights=VGGT_WEIGHTS,
+        licence="CC BY-NC 4.0 (facebook/VGGT-1B; facebook/VGGT-1B-Commercial is under the VGGT License, commercial use allowed)",
+        parameters=VGGT_PARAMETERS, recognizes=lambda keys: "aggregator.camera_token" in keys)
+
+
+VGGT_PARAMETERS = 1_190_596_120
+"""Parameters of the VGGT-1B we build: the checkpoint's 1,256,537,516 without the tracking head's
+65,941,396 (``tests/test_vggt_model.py`` counts them)."""

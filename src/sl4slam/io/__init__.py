@@ -15,6 +15,8 @@ iterated or fetched with ``get``) and lists unreadable inputs in ``skipped``.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from pathlib import Path
 
 from sl4slam.errors import UserError
@@ -52,21 +54,28 @@ __all__ = [
     "TUM_DEPTH_SCALE",
 ]
 
+if TYPE_CHECKING:
+    from ..config import SourceConfig
+
 _KINDS = "an image folder, a video file, a TUM RGB-D / 7-Scenes sequence folder, a camera index or a stream URL"
 
 
-def open_source(path: str | Path, stride: int = 1, max_frames: int = 0) -> FrameSource:
+def open_source(path: str | Path, settings: "SourceConfig | None" = None, *, stride: int | None = None,
+                max_frames: int | None = None) -> FrameSource:
     """Open ``path`` as a frame source, detecting its kind (see the module docstring).
 
     Args:
         path: video file, image folder, TUM sequence folder (or its ``rgb.txt``), 7-Scenes
-            sequence folder.
-        stride: keep every ``stride``-th frame.
-        max_frames: keep at most this many frames (0 = all).
+            sequence folder, camera index or stream URL.
+        settings: the run's ``[source]`` settings (``config.source``): stride and max_frames.
+        stride: keep every ``stride``-th frame (overrides ``settings``).
+        max_frames: keep at most this many frames, 0 = all (overrides ``settings``).
 
     Raises:
         UserError: the path does not exist, is an unsupported file, or holds no readable frames.
     """
+    stride = int(stride if stride is not None else settings.stride if settings is not None else 1)
+    max_frames = int(max_frames if max_frames is not None else settings.max_frames if settings is not None else 0)
     if is_live_spec(str(path)) and not Path(path).exists():
         return LiveSource(str(path), max_frames=max_frames, stride=stride)
     path = Path(path).expanduser()

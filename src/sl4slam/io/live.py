@@ -4,7 +4,15 @@ A reader thread pulls frames from OpenCV's capture as they arrive and puts each 
 buffer; the consumer (the pipeline) takes the newest frame when it is ready for one. When the
 consumer falls behind, the frame waiting in the slot is replaced by the newer one and counted in
 ``dropped``: nothing queues up, so latency and memory stay bounded. A video file can be played
-the same way at its own frame rate (``realtime=True``), which is how the behaviour is tested.
+the same way at its own frame rate (``realtime=True``).
+
+A video file can also be played on a :class:`ManualClock` (``clock=``), which makes the same
+policy deterministic: no reader thread; when the consumer asks for a frame, every frame whose
+time (``raw index / fps``) has come on the clock goes through the one-slot buffer (the newest
+wins, the others are dropped), and when none has come the clock jumps to the next one (the
+consumer waits for it). The consumer's processing time is whatever it advances the clock by, so
+a slow consumer drops exactly the frames it would drop at that speed in real time, whatever the
+machine's load: this is how the drop policy is tested.
 
 Length: unknown up front. ``len()`` is an upper bound (``max_frames``, or ``sys.maxsize``) so that
 a consumer written for finite sources runs unchanged, and ``live = True`` tells a consumer not to
@@ -48,6 +56,26 @@ OPEN_TIMEOUT_S = 5.0
 """Seconds to wait for a camera or stream to deliver its first frame before giving up."""
 
 
+class ManualClock:
+    """A clock that moves only when told (seconds from 0): the time base of a video file played
+    deterministically by :class:`LiveSource` (``clock=``); a consumer advances it by the time its
+    work would take."""
+
+    def __init__(self, start: float = 0.0) -> None:
+        self._now = float(start)
+
+    def now(self) -> float:
+        return self._now
+
+    def advance(self, seconds: float) -> None:
+        if seconds < 0:
+            raise ValueError(f"a clock does not go back ({seconds} s)")
+        self._now += float(seconds)
+
+    def advance_to(self, time: float) -> None:
+        self._now = max(self._now, float(time))
+
+
 def is_live_spec(spec: str) -> bool:
     """True for a camera index (``"0"``) or a stream URL."""
     spec = str(spec).strip()
@@ -75,6 +103,8 @@ class LiveSource:
         spool_dir: where kept frames are written (a temporary folder when ``None``).
         keyframe_counter: callable returning how many keyframes the consumer has selected so far.
         stride: keep every ``stride``-th frame read from the device (before the one-slot buffer).
+        clock: play a video file on this :class:`ManualClock` (deterministic; see the module
+            docstring) instead of in a reader thread; ``realtime`` is implied.
 
     Attributes:
         delivered: frames handed to the consumer; dropped: frames replaced in the slot unseen;
@@ -87,13 +117,15 @@ class LiveSource:
 
     def __init__(self, spec: str | int | Path, max_frames: int = 0, realtime: bool = False,
                  open_timeout: float = OPEN_TIMEOUT_S, spool_dir: str | Path | None = None,
-                 keyframe_counter: Callable[[], int] | None = None, stride: int = 1) -> None:
+                 keyframe_counter: Callable[[], int] | None = None, stride: int = 1,
+                 clock: ManualClock | None = None) -> None:
         if int(max_frames) < 0 or int(stride) < 1:
             raise UserError(f"max_frames must be >= 0 and stride >= 1, got {max_frames} and {stride}")
         self.spec = str(spec)
         self.max_frames = int(max_frames)
         self.stride = int(stride)
-        self.realtime = bool(realtime)
+        self.realtime = bool(realtime) or clock is not None
+        self.clock = clock
         self.skipped: list[str] = []
         self.delivered = 0
         self.dropped = 0
@@ -101,6 +133,8 @@ class LiveSource:
         self.is_file = not is_live_spec(self.spec)
         if self.is_file and not Path(self.spec).is_file():
             raise UserError(f"{self.spec} is neither a camera index, a stream URL nor a video file")
+        if clock is not None and not self.is_file:
+            raise UserError(f"only a video file can be played on a manual clock, not {self.spec}")
         self.name = f"camera{self.spec}" if self.spec.isdigit() else (Path(self.spec).stem if self.is_file else self.spec)
         self.keyframe_counter = keyframe_counter
         self._own_selector = None
@@ -117,8 +151,12 @@ class LiveSource:
         self._ended = False
         self._stop = threading.Event()
         self._started = time.monotonic()
-        self._reader = threading.Thread(target=self._read_loop, args=(first,), name=f"sl4slam-live-{self.name}", daemon=True)
-        self._reader.start()
+        self._reader: threading.Thread | None = None
+        self._next_raw, self._next_bgr = 0, first  # the manual clock's read position
+        if clock is None:
+            self._reader = threading.Thread(target=self._read_loop, args=(first,), name=f"sl4slam-live-{self.name}",
+                                            daemon=True)
+            self._reader.start()
 
     # ------------------------------------------------------------------ opening
     def _open(self, timeout: float) -> tuple[cv2.VideoCapture, np.ndarray]:
@@ -133,7 +171,10 @@ class LiveSource:
                 elif self.is_file:
                     capture = cv2.VideoCapture(self.spec)
                 else:
-                    ms = int(timeout * 1000)
+                    # FFmpeg gives up first (at 80 % of the time), so that its thread has ended when
+                    # the open fails; our own join below is the bound for a backend that ignores it
+                    # (a process that exits while FFmpeg still waits in a thread aborts)
+                    ms = max(1, int(timeout * 800))
                     capture = cv2.VideoCapture(self.spec, cv2.CAP_FFMPEG,
                                                [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, ms])
                 ok, bgr = capture.read() if capture.isOpened() else (False, None)
@@ -141,7 +182,7 @@ class LiveSource:
             except cv2.error as exc:  # pragma: no cover - backend-specific failures
                 box["error"] = str(exc)
 
-        thread = threading.Thread(target=attempt, daemon=True)
+        thread = threading.Thread(target=attempt, name=f"sl4slam-open-{self.name}", daemon=True)
         thread.start()
         thread.join(timeout)
         what = (f"no camera at index {self.spec}" if self.spec.isdigit()
@@ -169,9 +210,7 @@ class LiveSource:
                         if delay > 0 and self._stop.wait(delay):
                             break
                     with self._cond:
-                        if self._slot is not None:
-                            self.dropped += 1  # the consumer did not take the previous frame in time
-                        self._slot = (raw, stamp, bgr)
+                        self._offer(raw, stamp, bgr)
                         self._cond.notify_all()
                 self.read += 1
                 raw += 1
@@ -184,9 +223,39 @@ class LiveSource:
                 self._cond.notify_all()
             self._capture.release()
 
+    def _offer(self, raw: int, stamp: float, bgr: np.ndarray) -> None:
+        """Put a frame into the one-slot buffer (the caller holds the lock in threaded mode)."""
+        if self._slot is not None:
+            self.dropped += 1  # the consumer did not take the previous frame in time
+        self._slot = (raw, stamp, bgr)
+
+    def _play_on_clock(self) -> None:
+        """Manual clock: offer every frame whose time has come; with none waiting in the slot, move
+        the clock to the next kept frame's time (the consumer waits for it)."""
+        while self._next_bgr is not None and not self._stop.is_set():
+            raw = self._next_raw
+            due = raw / self.fps
+            if self._slot is not None and due > self.clock.now() + 1e-9:
+                break  # not yet: the consumer takes what is in the slot
+            if raw % self.stride == 0:
+                self.clock.advance_to(due)
+                self._offer(raw, due, self._next_bgr)
+            self.read += 1
+            self._next_raw += 1
+            ok, bgr = self._capture.read()
+            self._next_bgr = bgr if ok else None
+        if self._next_bgr is None and not self._ended:
+            self._ended = True
+            self._capture.release()
+
     # ------------------------------------------------------------------ consumer side
     def __len__(self) -> int:
         return self.max_frames if self.max_frames else sys.maxsize
+
+    @property
+    def stopped(self) -> bool:
+        """True once :meth:`stop` (or Ctrl-C during iteration) asked the iteration to end."""
+        return self._stop.is_set()
 
     def stop(self) -> None:
         """End iteration after the current frame (what Ctrl-C does)."""
@@ -195,6 +264,8 @@ class LiveSource:
             self._cond.notify_all()
 
     def _next_frame(self) -> tuple[int, float, np.ndarray] | None:
+        if self.clock is not None:
+            self._play_on_clock()
         with self._cond:
             self._cond.wait_for(lambda: self._slot is not None or self._ended or self._stop.is_set())
             if self._stop.is_set() or self._slot is None:
@@ -277,7 +348,11 @@ class LiveSource:
     def close(self) -> None:
         """Stop the reader and remove the spool folder when it was temporary."""
         self.stop()
-        self._reader.join(timeout=2.0)
+        if self._reader is not None:
+            self._reader.join(timeout=2.0)
+        elif not self._ended:
+            self._ended = True
+            self._capture.release()
         if self._spool_owned:
             shutil.rmtree(self.spool_dir, ignore_errors=True)
 

@@ -27,6 +27,7 @@ from torch import Tensor, nn
 
 from ..paths import user_cache_dir
 from ..errors import MissingWeightsError, UserError
+from .checkpoint import check_weights_file, describe_checkpoint, read_checkpoint
 from .dinov2 import DinoVisionTransformer
 
 logger = logging.getLogger(__name__)
@@ -313,26 +314,29 @@ def _download(url: str, destination: Path) -> None:
     partial.replace(destination)
 
 
+SALAD_REFETCH = (f"delete it and download {SALAD_WEIGHTS_URL} again, then pass it with --salad-weights PATH "
+                 "(or leave it in the cache folder)")
+
+
 def read_state_dict(path: str | os.PathLike) -> dict[str, Tensor]:
     """Tensors of a SALAD checkpoint: a plain state dict, a Lightning checkpoint
-    (``{"state_dict": ...}``) or a ``.safetensors`` file."""
-    path = Path(path)
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
+    (``{"state_dict": ...}``) or a ``.safetensors`` file (``sl4slam.models.checkpoint``: one line
+    for a cut, corrupt or unreadable file)."""
+    state_dict, _ = read_checkpoint(path, "SALAD", SALAD_REFETCH)
+    return state_dict
 
-        return load_file(str(path))
-    try:
-        data = torch.load(str(path), map_location="cpu", weights_only=True)
-    except Exception as exc:  # unreadable, truncated, or pickled objects beyond tensors
-        raise UserError(
-            f"cannot read SALAD checkpoint {path} ({type(exc).__name__}); expected dino_salad.ckpt "
-            "(a torch state dict) - re-download it or save the model's state_dict() alone"
-        ) from None
-    if isinstance(data, dict) and isinstance(data.get("state_dict"), dict):
-        data = data["state_dict"]
-    if not isinstance(data, dict) or not all(isinstance(v, Tensor) for v in data.values()):
-        raise UserError(f"SALAD checkpoint {path} does not hold a state dict of tensors")
-    return data
+
+def check_salad_weights(weights: str | os.PathLike | None) -> Path | None:
+    """The checkpoint a run would load, checked without loading it (a cut or corrupt file, a
+    folder: one line), or ``None`` when it is neither given nor cached (it is then downloaded)."""
+    path = find_salad_weights(weights)
+    if weights is not None and path is None:
+        given = Path(weights).expanduser()
+        if given.is_dir():
+            check_weights_file(given, "SALAD", SALAD_REFETCH)
+        raise MissingWeightsError(f"SALAD weights not found at {given}; download {SALAD_WEIGHTS_URL} and pass its "
+                                  "path with --salad-weights PATH")
+    return check_weights_file(path, "SALAD", SALAD_REFETCH) if path is not None else None
 
 
 def load_salad(
@@ -354,25 +358,21 @@ def load_salad(
         UserError: the file is not a SALAD checkpoint (keys or shapes differ).
     """
     if weights is not None:
-        path = Path(weights).expanduser()
-        if not path.is_file():
-            raise MissingWeightsError(
-                f"SALAD weights not found at {path}; download {SALAD_WEIGHTS_URL} and pass its path"
-            )
+        path = check_salad_weights(weights)
     else:
         path = salad_cache_dir() / SALAD_WEIGHTS_FILENAME
         if not path.is_file():
             if not download:
                 raise MissingWeightsError(
-                    f"SALAD weights not found at {path}; download {SALAD_WEIGHTS_URL} there or pass a path"
-                )
+                    f"SALAD weights not found at {path}; download {SALAD_WEIGHTS_URL} there or pass its path "
+                    "with --salad-weights PATH")
             logger.info("downloading SALAD weights from %s to %s", SALAD_WEIGHTS_URL, path)
             try:
                 _download(SALAD_WEIGHTS_URL, path)
             except Exception as exc:  # offline, proxy, HTTP error, disk full
                 raise MissingWeightsError(
                     f"SALAD weights could not be downloaded ({type(exc).__name__}: {exc}); "
-                    f"download {SALAD_WEIGHTS_URL} to {path} or pass its path"
+                    f"download {SALAD_WEIGHTS_URL} to {path} or pass its path with --salad-weights PATH"
                 ) from None
 
     state_dict = read_state_dict(path)
@@ -384,8 +384,11 @@ def load_salad(
         missing = sorted(set(expected) - set(found))
         unexpected = sorted(set(found) - set(expected))
         wrong = sorted(k for k in set(expected) & set(found) if expected[k] != found[k])
+        holds = describe_checkpoint(state_dict)
+        holds = "a SALAD checkpoint of another size" if holds.startswith("a SALAD") else holds
         raise UserError(
-            f"{path} is not a SALAD (DINOv2 ViT-B/14) checkpoint: {len(missing)} missing keys {missing[:3]}, "
+            f"{path} holds {holds}, not the released SALAD (DINOv2 ViT-B/14) checkpoint: "
+            f"{len(missing)} missing keys {missing[:3]}, "
             f"{len(unexpected)} unexpected {unexpected[:3]}, {len(wrong)} wrong shapes {wrong[:3]}"
         )
     model.load_state_dict({k: v.float() for k, v in state_dict.items()}, strict=True, assign=True)

@@ -2,10 +2,10 @@
 
 Real place recognition proposes wrong places (repeated structures, similar rooms); one false loop
 that reaches the graph bends the whole map. :class:`FalseLoopRetrieval` wraps any retrieval and,
-with probability ``SimulatorConfig.false_loop_rate`` per proposal (seeded), replaces the proposed
-match by a *wrong place*: a stored keyframe whose true pose is at least ``false_loop_min_distance``
-metres or ``false_loop_min_angle`` degrees (between optical axes) from the query's, and which does
-not see what the query sees (at most ``false_loop_max_overlap`` of its ground-truth points, on a
+with probability ``FalseLoopConfig.rate`` per proposal (seeded), replaces the proposed
+match by a *wrong place*: a stored keyframe whose true pose is at least ``min_distance``
+metres or ``min_angle`` degrees (between optical axes) from the query's, and which does
+not see what the query sees (at most ``max_overlap`` of its ground-truth points, on a
 coarse grid, fall inside the query's view). Among those it prefers look-alikes: the one whose small
 grey thumbnail correlates best with the query's. Every replacement is recorded in :attr:`injected`
 so benchmarks can count how many the checks rejected.
@@ -22,7 +22,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from ..config import SimulatorConfig
+from ..config import FalseLoopConfig
 from ..errors import UserError
 from ..geometry import se3_inverse, unproject_depth
 from ..types import Frame, LoopCandidate, Retrieval
@@ -84,8 +84,7 @@ class FalseLoopRetrieval:
 
     Args:
         inner: the retrieval whose proposals are corrupted.
-        config: ``false_loop_rate``, ``false_loop_min_distance``, ``false_loop_min_angle``,
-            ``false_loop_max_overlap`` and ``seed``.
+        config: the rate, the wrong places' distance, angle and overlap, and the seed.
         tau_interval: the retrieval's exclusion of recent submaps (wrong places respect it too).
 
     Attributes:
@@ -93,7 +92,7 @@ class FalseLoopRetrieval:
         proposed: every candidate returned, in order.
     """
 
-    def __init__(self, inner: Retrieval, config: SimulatorConfig, tau_interval: int) -> None:
+    def __init__(self, inner: Retrieval, config: FalseLoopConfig, tau_interval: int) -> None:
         self.inner = inner
         self.name = f"{inner.name}+false-loops"
         self.config = config
@@ -119,7 +118,7 @@ class FalseLoopRetrieval:
         by_index = {int(f.index): f for f in frames}
         out = []
         for candidate in proposals:
-            if self._rng.random() < self.config.false_loop_rate:
+            if self._rng.random() < self.config.rate:
                 wrong = self._wrong_place(by_index[candidate.query_frame], submap_id)
                 if wrong is not None:
                     candidate = LoopCandidate(candidate.query_frame, wrong.frame_index, wrong.submap_id, candidate.distance)
@@ -141,8 +140,8 @@ class FalseLoopRetrieval:
         axes = np.stack([s.T_world_cam[:3, 2] for s in eligible])
         distance = np.linalg.norm(positions - T_query[:3, 3], axis=1)
         angle = np.degrees(np.arccos(np.clip(axes @ T_query[:3, 2], -1.0, 1.0)))
-        far = (distance >= cfg.false_loop_min_distance) | (angle >= cfg.false_loop_min_angle)
-        elsewhere = np.array([overlap_fraction(s.points_world, T_query, query.K, (width, height)) <= cfg.false_loop_max_overlap
+        far = (distance >= cfg.min_distance) | (angle >= cfg.min_angle)
+        elsewhere = np.array([overlap_fraction(s.points_world, T_query, query.K, (width, height)) <= cfg.max_overlap
                               for s in eligible])
         choices = np.flatnonzero(far & elsewhere)
         if len(choices) == 0:

@@ -125,15 +125,15 @@ class OrbRetrieval:
     Args:
         config: ``RetrievalConfig``; uses ``tau_interval`` and the ``orb_*`` settings (features,
             candidates, minimum inliers, ratio test, Hamming bound, epipolar threshold, image size).
-        seed: seed of the word tables and of the RANSAC sampler.
+        seed: seed of the word tables and of the RANSAC sampler (default: ``config.seed``).
     """
 
     name = "orb"
 
-    def __init__(self, config: RetrievalConfig | None = None, seed: int = 0) -> None:
+    def __init__(self, config: RetrievalConfig | None = None, seed: int | None = None) -> None:
         self.config = config if config is not None else RetrievalConfig()
-        self.config.validate()
-        self.seed = int(seed)
+        self.config.validate()  # a retrieval built by hand gets the one-line errors of a run
+        self.seed = int(self.config.seed if seed is None else seed)
         self.max_image_side = int(self.config.orb_max_image_side)
         self.ratio = float(self.config.orb_ratio)
         self.max_hamming = float(self.config.orb_max_hamming)

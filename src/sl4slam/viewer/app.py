@@ -5,6 +5,16 @@ position, uint8 colours), ``/cameras/kf_NNNNNN`` keyframe frustums with thumbnai
 ``/trajectory``, ``/loops`` and ``/ground_truth`` line segments. Only the parts that changed are
 sent again: a new submap is one cloud; a point-size change touches no point data; the confidence
 slider and the colouring resend the clouds (the browser cannot filter them itself).
+
+What a browser that opens the page sees first: viser replays its messages in the order they were
+sent (in windows of 128, a window applied per frame), so the control panel is built (when the
+server starts) and filled (counts, summary, slider ranges: :meth:`MapViewer.fill_gui`) and the
+view that frames the map is set (:meth:`MapViewer.frame_map`) before any geometry; then come the
+lines, the clouds, and last the frustums with their thumbnails: the panel is complete in the first
+frame that shows the map. viser's default environment map is switched off: nothing drawn here is
+lit by it, and while its image loads viser draws the canvas at 5 % opacity and fades it in over
+five frames, which with software WebGL and a large cloud took tens of seconds during which the
+map was a white haze.
 """
 
 from __future__ import annotations
@@ -24,11 +34,15 @@ from .scene import (
     MapState,
     SubmapCloud,
     ViewerSettings,
+    auto_point_size,
     confidence_threshold,
-    evenly_spaced,
     follow_view,
-    overview,
     frustum_fov,
+    frustum_indices,
+    frustum_scale,
+    map_spacing,
+    map_sphere,
+    overview,
     path_segments,
     rotation_wxyz,
     scene_extent,
@@ -95,12 +109,16 @@ class MapViewer:
         self.server = start_server(self.settings.host, self.settings.port, stream=stream)
         # no share button: the map stays on the interface it is served on
         self.server.gui.configure_theme(control_width="medium", show_share_button=False, show_logo=False)
+        # no environment map: nothing drawn is lit by it, and loading it fades the canvas in (module doc)
+        self.server.scene.configure_environment_map(hdri=None)
         self.state = MapState()
         self.lock = threading.RLock()
         self._clouds: dict[int, object] = {}
         self._frustums: dict[int, object] = {}
         self._extent = 1.0
         self._point_size = self.settings.point_size
+        self._spacing: float | None = None
+        self._spacing_of: tuple = ()
         self._build_gui(title)
 
     @property
@@ -113,13 +131,17 @@ class MapViewer:
         gui.add_markdown(f"**{title}**")
         with gui.add_folder("Map"):
             self.gui_size = gui.add_slider("Point size", min=0.1, max=10.0, step=0.1, initial_value=1.0,
-                                           hint="relative to the scene's extent / 500")
+                                           hint="times the map's own point spacing (1: neighbouring points overlap)")
             self.gui_confidence = gui.add_slider("Min confidence %", min=0, max=99, step=1, initial_value=0,
                                                  hint="hide the given percentage of least confident points")
             self.gui_color = gui.add_dropdown("Colour", COLOR_MODES, initial_value="rgb")
             self.gui_points = gui.add_markdown("points: 0")
         with gui.add_folder("Show"):
             self.gui_show_cameras = gui.add_checkbox("Cameras", True)
+            self.gui_all_frustums = gui.add_checkbox(
+                "All frustums", False,
+                hint=f"a frustum for every keyframe (by default at most {self.settings.max_frustums}, "
+                     "spread along the trajectory)")
             self.gui_show_trajectory = gui.add_checkbox("Trajectory", True)
             self.gui_show_loops = gui.add_checkbox("Loop edges", True)
             self.gui_show_gt = gui.add_checkbox("Ground truth", True)
@@ -133,6 +155,7 @@ class MapViewer:
         self.gui_confidence.on_update(lambda _: self.draw_clouds())
         self.gui_color.on_update(lambda _: self.draw_clouds())
         self.gui_show_cameras.on_update(lambda _: self._apply_visibility())
+        self.gui_all_frustums.on_update(lambda _: self.draw_frustums())
         self.gui_show_trajectory.on_update(lambda _: self._apply_visibility())
         self.gui_show_loops.on_update(lambda _: self._apply_visibility())
         self.gui_show_gt.on_update(lambda _: self._apply_visibility())
@@ -142,8 +165,30 @@ class MapViewer:
 
     # ------------------------------------------------------------------ drawing
     def _size(self) -> float:
-        base = self._point_size if self._point_size > 0 else self._extent / 500.0
+        """The point size sent to viser: the settings' size, or the one derived from the map's point
+        spacing (:func:`~sl4slam.viewer.scene.auto_point_size`), times the slider."""
+        base = self._point_size if self._point_size > 0 else auto_point_size(self._spacing, self._extent / 500.0)
         return float(base * self.gui_size.value)
+
+    def _measure_spacing(self) -> None:
+        """The map's point spacing, measured again only when the clouds changed."""
+        key = tuple((i, len(c)) for i, c in sorted(self.state.clouds.items()))
+        if key != self._spacing_of:
+            self._spacing = map_spacing(self.state.clouds.values(), seed=self.settings.seed)
+            self._spacing_of = key
+
+    def fill_gui(self) -> None:
+        """Put the state's numbers into the control panel (point count, summary, slider ranges); call
+        before sending geometry, so that a browser gets a complete panel before any cloud."""
+        with self.lock:
+            state = self.state
+            self.gui_points.content = (f"points: {state.total_points():,} shown of "
+                                       f"{sum(c.full_count for c in state.clouds.values()):,}"
+                                       + ("" if state.has_confidence() else " (no per-pixel confidence saved: mask only)"))
+            self.gui_confidence.disabled = not state.has_confidence()
+            self.gui_keyframe.max = max(1, len(state.T_world_cam) - 1)
+            if self.gui_summary.content != state.summary_markdown:
+                self.gui_summary.content = state.summary_markdown
 
     def _apply_point_size(self) -> None:
         size = self._size()
@@ -152,9 +197,15 @@ class MapViewer:
                 handle.point_size = size
 
     def draw_clouds(self, submap_ids=None) -> None:
-        """Send the clouds of ``submap_ids`` (all when ``None``) as they are in the state."""
+        """Send the clouds of ``submap_ids`` (all when ``None``) as they are in the state (the panel's
+        numbers first, and the point size measured on the map before the first cloud goes out)."""
         with self.lock:
             state = self.state
+            self.fill_gui()
+            size_before = self._size()
+            self._measure_spacing()
+            if self._size() != size_before:
+                self._apply_point_size()
             threshold = confidence_threshold(state.clouds.values(), float(self.gui_confidence.value))
             crange = state.confidence_range()
             ids = list(state.clouds) if submap_ids is None else [i for i in submap_ids if i in state.clouds]
@@ -164,10 +215,6 @@ class MapViewer:
                     self._draw_cloud(state.clouds[submap_id], threshold, mode, crange)
                 for submap_id in [i for i in self._clouds if i not in state.clouds]:
                     self._clouds.pop(submap_id).remove()
-            self.gui_points.content = (f"points: {state.total_points():,} shown of "
-                                       f"{sum(c.full_count for c in state.clouds.values()):,}"
-                                       + ("" if state.has_confidence() else " (no per-pixel confidence saved: mask only)"))
-            self.gui_confidence.disabled = not state.has_confidence()
 
     def _draw_cloud(self, cloud: SubmapCloud, threshold: float, mode: str, crange) -> None:
         offsets, colors = visible_part(cloud, threshold, mode, crange)
@@ -183,15 +230,40 @@ class MapViewer:
             point_shape="square", precision="float16", point_shading="flat", position=cloud.centre)
 
     def draw_cameras(self, thumbnails_for=()) -> None:
-        """Trajectory line and keyframe frustums (``thumbnails_for``: frame indices whose image changed)."""
+        """Trajectory, loop and ground-truth lines, then the keyframe frustums (``thumbnails_for``:
+        frame indices whose image changed)."""
+        self.draw_lines()
+        self.draw_frustums(thumbnails_for)
+
+    def draw_lines(self) -> None:
+        """Trajectory, loop edges and ground truth (a few small messages)."""
+        with self.lock:
+            state = self.state
+            size_before = self._size()
+            positions = state.T_world_cam[:, :3, 3]
+            self._extent = scene_extent(positions)
+            with self.server.atomic():
+                self._lines("/trajectory", path_segments(positions), TRAJECTORY_COLOR, self.gui_show_trajectory)
+                self._lines("/loops", state.loop_segments, LOOP_COLOR, self.gui_show_loops, width=2.0)
+                gt = state.gt_positions
+                self._lines("/ground_truth", path_segments(gt) if gt is not None else np.zeros((0, 2, 3)), GT_COLOR,
+                            self.gui_show_gt)
+            if self._size() != size_before:  # the fallback size follows the trajectory's extent
+                self._apply_point_size()
+
+    def draw_frustums(self, thumbnails_for=()) -> None:
+        """Keyframe frustums with thumbnails: at most ``settings.max_frustums`` spread along the
+        trajectory (:func:`~sl4slam.viewer.scene.frustum_indices`), every keyframe's with "All
+        frustums"; sized to the map (:func:`~sl4slam.viewer.scene.frustum_scale`)."""
         with self.lock:
             state = self.state
             positions = state.T_world_cam[:, :3, 3]
-            self._extent = scene_extent(positions)
-            scale = 0.04 * self._extent
-            shown = set(evenly_spaced(len(state.T_world_cam), self.settings.max_frustums).tolist())
+            limit = len(positions) if self.gui_all_frustums.value else self.settings.max_frustums
+            picked = frustum_indices(positions, limit)
             if len(state.K) != len(state.T_world_cam):  # trajectory only (no keyframe files): no frustums
-                shown = set()
+                picked = np.zeros(0, np.int64)
+            shown = set(picked.tolist())
+            scale = frustum_scale(map_sphere(state)[1], positions[picked])
             wxyz = rotation_wxyz(state.T_world_cam) if len(state.T_world_cam) else np.zeros((0, 4))
             with self.server.atomic():
                 for i, frame_index in enumerate(state.frame_indices.tolist()):
@@ -214,13 +286,6 @@ class MapViewer:
                         handle.wxyz, handle.position, handle.scale = wxyz[i], positions[i], scale
                 for frame_index in [f for f in self._frustums if f not in set(state.frame_indices.tolist())]:
                     self._frustums.pop(frame_index).remove()
-                self._lines("/trajectory", path_segments(positions), TRAJECTORY_COLOR, self.gui_show_trajectory)
-                self._lines("/loops", state.loop_segments, LOOP_COLOR, self.gui_show_loops, width=2.0)
-                gt = state.gt_positions
-                self._lines("/ground_truth", path_segments(gt) if gt is not None else np.zeros((0, 2, 3)), GT_COLOR,
-                            self.gui_show_gt)
-            self.gui_keyframe.max = max(1, len(state.T_world_cam) - 1)
-        self._apply_point_size()
 
     def _lines(self, name: str, segments: np.ndarray, color, toggle, width: float = 1.0) -> None:
         if len(segments) == 0:
@@ -237,12 +302,24 @@ class MapViewer:
 
     def set_summary(self, markdown: str) -> None:
         self.state.summary_markdown = markdown
-        self.gui_summary.content = markdown
+        if self.gui_summary.content != markdown:
+            self.gui_summary.content = markdown
 
     def set_up_direction(self) -> None:
         """World up: the first keyframe's -y axis (cameras are held upright at the start)."""
         if len(self.state.T_world_cam):
             self.server.scene.set_up_direction(-self.state.T_world_cam[0, :3, 1])
+
+    def frame_map(self) -> None:
+        """Make the view that frames the map (:func:`~sl4slam.viewer.scene.overview`) the one a
+        browser opens with (and returns to with "Reset View"): it is part of what a new browser
+        receives first, so its first frame already looks at the map. Browsers already open keep
+        their view."""
+        view = overview(self.state)
+        if view is None:
+            return
+        camera = self.server.initial_camera
+        camera.position, camera.look_at, camera.up = view
 
     # ------------------------------------------------------------------ camera
     def apply_follow(self, newest: bool = False) -> None:
@@ -266,4 +343,7 @@ class MapViewer:
             client.camera.position, client.camera.look_at, client.camera.up_direction = view
 
     def close(self) -> None:
-        self.server.stop()
+        """Stop the server (once; later calls do nothing)."""
+        if not getattr(self, "_closed", False):
+            self._closed = True
+            self.server.stop()

@@ -8,7 +8,7 @@ the newest wins, nothing queues up).
 Per snapshot the worker:
 
 1. builds the cloud of every submap it has not seen (its keyframes' confident points through
-   ``sl4slam.outputs.keyframe_world_points``, decimated once into a random order);
+   ``sl4slam.result.outputs.keyframe_world_points``, decimated once into a random order);
 2. redraws the submaps whose graph node moved: after a loop closure the optimizer moves many
    nodes, and each such cloud is mapped by ``H_new @ H_drawn^-1`` (projective, exact), not rebuilt;
    a node counts as moved when one of 64 probe points moves more than ``redraw_tolerance`` times
@@ -28,7 +28,7 @@ from typing import TextIO
 
 import numpy as np
 
-from ..results import GraphEdge, keyframe_colors, loop_segments
+from ..result.reading import GraphEdge, keyframe_colors, loop_segments
 from .result import summary_markdown
 from .scene import MapState, SubmapCloud, ViewerSettings, gt_in_estimate_frame, make_cloud, scene_extent, thumbnail
 
@@ -61,7 +61,7 @@ class _Snapshot:
     estimates: dict[int, np.ndarray]
     edges: list
     frames: int
-    colors: object = None  # what re-reads keyframe colours (see sl4slam.results.keyframe_colors)
+    colors: object = None  # what re-reads keyframe colours (see sl4slam.result.reading.keyframe_colors)
     T_world_cam: np.ndarray | None = None  # final poses and intrinsics (from the result) when known
     K: np.ndarray | None = None
     gt: np.ndarray | None = None
@@ -106,7 +106,7 @@ class LiveViewer:
         world = pipeline.backend.world_estimate()
         snapshot = _Snapshot(keyframes=list(pipeline.keyframes),
                              estimates={k: np.array(v, np.float64) for k, v in world.H_world_submap.items()},
-                             edges=list(pipeline.edges), frames=int(getattr(pipeline, "num_frames", 0)), colors=pipeline,
+                             edges=list(pipeline.edges), frames=int(pipeline.num_frames), colors=pipeline.colors,
                              keyframe_estimates=dict(world.H_world_keyframe))
         self._submit(snapshot)
 
@@ -117,7 +117,7 @@ class LiveViewer:
         snapshot = _Snapshot(keyframes=list(result.keyframes), estimates=dict(result.H_world_submap),
                              edges=list(result.edges), frames=int(result.stats.get("frames", 0)),
                              T_world_cam=result.T_world_cam, K=result.K, gt=result.T_world_cam_gt, summary=summary,
-                             colors=result, keyframe_estimates=dict(getattr(result, "H_world_keyframe", {})))
+                             colors=result.keyframe_colors, keyframe_estimates=dict(result.H_world_keyframe))
         self._submit(snapshot)
         self.wait(timeout)
 
@@ -136,6 +136,17 @@ class LiveViewer:
             self._closed = True
             self._cond.notify_all()
         self.viewer.close()
+
+    def serve_until_stopped(self, stream: TextIO = sys.stdout) -> None:
+        """Keep the map served after the run until Ctrl-C or SIGTERM, then close (see
+        :func:`sl4slam.viewer.result.serve_until_stopped`: the stop does not depend on which thread
+        gets the signal)."""
+        from .result import serve_until_stopped
+
+        try:
+            serve_until_stopped(self.viewer, stream)
+        finally:
+            self.close()
 
     # ------------------------------------------------------------------ worker side
     def _run(self) -> None:
@@ -158,7 +169,7 @@ class LiveViewer:
 
     def apply(self, snap: _Snapshot) -> None:
         """Turn one snapshot into drawing (runs on the worker thread; callable directly in tests)."""
-        from ..pipeline import keyframe_cameras
+        from ..result import keyframe_cameras
 
         viewer, state = self.viewer, self.state
         keyframes = [k for k in snap.keyframes if k.submap_id in snap.estimates]
@@ -205,16 +216,20 @@ class LiveViewer:
             summary = snap.summary if snap.summary is not None else {"counts": counts}
             if len(new) == len(state.clouds) and new:
                 viewer.set_up_direction()
-            viewer.draw_clouds(None if resized else new + moved)
-            viewer.draw_cameras(thumbnails_for={k.frame_index for k in fresh})
+            if new:
+                viewer.frame_map()  # where a browser opened from now on starts (open ones keep their view)
+            # the panel first, then the lines, the clouds, the frustums last (see sl4slam.viewer.app)
             viewer.set_summary(summary_markdown(summary, ate_rmse, "" if snap.summary else "*running*"))
+            viewer.draw_lines()
+            viewer.draw_clouds(None if resized else new + moved)
+            viewer.draw_frustums(thumbnails_for={k.frame_index for k in fresh})
             viewer.apply_follow(newest=True)
         self.updates += 1
         self.redrawn.append(sorted(moved))
 
     def _build_cloud(self, submap_id: int, keyframes: list, H_world_submap: np.ndarray, owner=None,
                      H_world_keyframe: dict | None = None) -> SubmapCloud:
-        from ..outputs import keyframe_world_points
+        from ..result.outputs import keyframe_world_points
 
         points, colors, confidence = [], [], []
         own = H_world_keyframe or {}

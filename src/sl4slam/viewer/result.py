@@ -1,8 +1,10 @@
-"""Viewing a finished run: a result folder read by :func:`sl4slam.results.load_result`."""
+"""Viewing a finished run: a result folder read by :func:`sl4slam.result.reading.load_result`."""
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -10,7 +12,7 @@ from typing import TextIO
 
 import numpy as np
 
-from ..results import RunResult, load_result
+from ..result.reading import RunResult, load_result
 from .scene import MapState, ViewerSettings, gt_in_estimate_frame, make_cloud, thumbnail
 
 
@@ -97,13 +99,17 @@ def _submap_cloud(submap_id: int, records, fraction: float, settings: ViewerSett
 
 
 def show_state(viewer, state: MapState) -> None:
-    """Send a whole state to a :class:`~sl4slam.viewer.app.MapViewer`."""
+    """Send a whole state to a :class:`~sl4slam.viewer.app.MapViewer`: the view and the control
+    panel's numbers and summary first, then the lines, the clouds, and the frustums last (see
+    :mod:`sl4slam.viewer.app`)."""
     with viewer.lock:
         viewer.state = state
         viewer.set_up_direction()
-        viewer.draw_cameras(thumbnails_for=set(state.thumbnails))
+        viewer.frame_map()
+        viewer.fill_gui()
+        viewer.draw_lines()
         viewer.draw_clouds()
-        viewer.set_summary(state.summary_markdown)
+        viewer.draw_frustums(thumbnails_for=set(state.thumbnails))
 
 
 def view_result(path: str | Path, settings: ViewerSettings | None = None, block: bool = True,
@@ -125,11 +131,33 @@ def view_result(path: str | Path, settings: ViewerSettings | None = None, block:
           f"{time.perf_counter() - start:.1f} s; Ctrl-C to stop", file=stream, flush=True)
     if not block:
         return viewer
+    serve_until_stopped(viewer, stream)
+    return viewer
+
+
+def serve_until_stopped(viewer, stream: TextIO = sys.stdout, poll: float = 0.2) -> None:
+    """Keep ``viewer`` serving until Ctrl-C (SIGINT) or SIGTERM, then stop its server and print
+    "viewer stopped".
+
+    In the main thread the two signals only set an event, which this loop checks every ``poll``
+    seconds: the stop does not depend on which thread the operating system hands the signal to
+    (a main thread asleep in one long ``time.sleep`` wakes only when it gets the signal itself),
+    and no KeyboardInterrupt is raised inside the server's code. The previous handlers are back
+    before the server stops, so a second Ctrl-C interrupts a stop that hangs. Outside the main
+    thread (no handlers there), KeyboardInterrupt ends the wait.
+    """
+    stop = threading.Event()
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            previous[signum] = signal.signal(signum, lambda *_: stop.set())
     try:
-        while True:
-            time.sleep(3600)
+        while not stop.wait(poll):
+            pass
     except KeyboardInterrupt:
         pass
     finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
         viewer.close()
-    return viewer
+    print("viewer stopped", file=stream, flush=True)

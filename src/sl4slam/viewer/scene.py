@@ -23,17 +23,21 @@ class ViewerSettings:
     Attributes:
         point_budget: most points sent to the browser in all; 1M keeps WebGL interaction smooth on
             integrated graphics (our measurement, benchmarks/results/viewer.md), 2M+ needs a GPU.
-        point_size: initial point size in world units (relative to the scene's extent when 0).
-        max_frustums: keyframe frustums drawn (evenly spread over the keyframes); each carries a
-            thumbnail ``thumbnail_width`` px wide.
+        point_size: initial point size in world units (viser's ``point_size``: half the side of
+            the square drawn); 0 derives it from the map's own point spacing
+            (:func:`auto_point_size`), so that neighbouring points overlap at any map scale.
+        max_frustums: keyframe frustums drawn by default (evenly spread along the trajectory,
+            :func:`frustum_indices`); the viewer's "All frustums" control draws one per keyframe.
+            Each carries a thumbnail ``thumbnail_width`` px wide. 24: a map of hundreds of keyframes
+            stays visible behind them.
         host: interface to bind; 127.0.0.1 keeps the map on this machine.
         port: first port to try; the next free one is taken when it is in use.
-        seed: seed of the per-cloud point order.
+        seed: seed of the per-cloud point order (and of the sample that measures the spacing).
     """
 
     point_budget: int = 1_000_000
     point_size: float = 0.0
-    max_frustums: int = 300
+    max_frustums: int = 24
     thumbnail_width: int = 96
     host: str = "127.0.0.1"
     port: int = 8080
@@ -158,6 +162,120 @@ def evenly_spaced(count: int, limit: int) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, count - 1, max(limit, 2))).astype(np.int64))
 
 
+def frustum_indices(positions: np.ndarray, limit: int) -> np.ndarray:
+    """Which of the keyframes at ``positions (N, 3)`` (in trajectory order) get a frustum: all when
+    ``N <= limit``, otherwise at most ``limit`` (the first and the last included) evenly spread
+    along the trajectory.
+
+    "Along the trajectory" is half keyframe order, half distance travelled: the keyframe nearest
+    to each of ``limit`` evenly spaced values of ``0.5 * i / (N - 1) + 0.5 * s_i / s_total`` (``s_i``
+    the path length up to keyframe ``i``), so a long straight walk and a turn on the spot (no
+    distance, many keyframes) both keep frustums.
+    """
+    positions = np.asarray(positions, np.float64).reshape(-1, 3)
+    count = len(positions)
+    if count <= limit:
+        return np.arange(count)
+    if limit <= 0:
+        return np.zeros(0, np.int64)
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
+    order = np.arange(count) / (count - 1)
+    along = 0.5 * order + (0.5 * travelled / travelled[-1] if travelled[-1] > 0 else 0.5 * order)
+    targets = np.linspace(0.0, 1.0, max(limit, 2))
+    picked = np.clip(np.searchsorted(along, targets), 0, count - 1)
+    # searchsorted gives the first keyframe at or past each target; take the nearer of it and the one before
+    before = np.clip(picked - 1, 0, count - 1)
+    picked = np.where(np.abs(along[before] - targets) < np.abs(along[picked] - targets), before, picked)
+    return np.unique(picked)
+
+
+def frustum_scale(map_radius: float, positions: np.ndarray) -> float:
+    """Size of the drawn frustums (viser's ``scale``, about the frustum's depth) in world units: 2.5 % of
+    the map's radius (:func:`map_sphere`), shrunk when the drawn cameras are closer together than
+    that (to the median distance between consecutive ones, at least 1 % of the radius), so that
+    many frustums do not cover each other and the map."""
+    positions = np.asarray(positions, np.float64).reshape(-1, 3)
+    scale = 0.025 * map_radius
+    if len(positions) > 1:
+        step = float(np.median(np.linalg.norm(np.diff(positions, axis=0), axis=1)))
+        scale = min(scale, max(step, 0.01 * map_radius))
+    return float(scale)
+
+
+POINT_SIZE_PER_SPACING = 1.5
+"""viser's point size per unit of the map's median nearest-neighbour spacing (see :func:`auto_point_size`)."""
+
+
+def sample_points(clouds, count: int) -> np.ndarray:
+    """About ``count`` of the clouds' points ``(M, 3)`` float64 in the world, a uniform sample of
+    them all (each cloud's points are in random order, so its first ones are a uniform sample)."""
+    clouds = [c for c in clouds if len(c)]
+    total = sum(len(c) for c in clouds)
+    if not total:
+        return np.zeros((0, 3))
+    share = min(1.0, count / total)
+    return np.concatenate([c.offsets[: max(1, round(len(c) * share))].astype(np.float64) + c.centre
+                           for c in clouds])
+
+
+def median_spacing(points: np.ndarray, total: int | None = None, queries: int = 5000, seed: int = 0) -> float | None:
+    """Median distance from a point of the map to its nearest neighbour, in world units.
+
+    ``points (M, 3)``: the map's points, or a uniform sample of ``total`` of them. The median is
+    taken over ``queries`` points drawn at random (robust to isolated outliers, which have far
+    neighbours, and to duplicates, which are skipped). When ``points`` is a sample of a larger
+    map, the spacing measured in the sample is scaled by ``sqrt(M / total)``: a dense map is made
+    of surfaces, where the spacing of a uniform sample grows as the square root of the thinning
+    (for a surface with some thickness the true factor is smaller, so the estimate errs towards
+    larger points). ``None`` when fewer than two distinct points.
+    """
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    points = points[np.isfinite(points).all(axis=1)]
+    if len(points) < 2:
+        return None
+    rng = np.random.default_rng(seed)
+    chosen = points[rng.choice(len(points), size=min(queries, len(points)), replace=False)]
+    distances, _ = cKDTree(points).query(chosen, k=min(4, len(points)))
+    nearest = np.where(distances[:, 1:] > 0, distances[:, 1:], np.inf).min(axis=1)  # skip the point itself and duplicates
+    nearest = nearest[np.isfinite(nearest)]
+    if not len(nearest):
+        return None
+    spacing = float(np.median(nearest))
+    if total is not None and total > len(points):
+        spacing *= float(np.sqrt(len(points) / total))
+    return spacing
+
+
+def map_spacing(clouds, sample: int = 250_000, seed: int = 0) -> float | None:
+    """:func:`median_spacing` of the displayed map (all clouds), from a uniform sample of at most
+    ``sample`` points (a k-d tree of 250k points takes a few hundredths of a second)."""
+    clouds = [c for c in clouds if len(c)]
+    total = sum(len(c) for c in clouds)
+    return median_spacing(sample_points(clouds, sample), total=total, seed=seed) if total else None
+
+
+def auto_point_size(spacing: float | None, fallback: float) -> float:
+    """The default point size (viser's ``point_size``, world units) for a map whose points are
+    ``spacing`` apart (:func:`median_spacing`); ``fallback`` when the map has no spacing.
+
+    viser draws a point as a square of side ``2 * point_size`` world units (its vertex shader sets
+    ``gl_PointSize = point_size * H / (tan(fov / 2) * z)`` px, while a length ``L`` at depth ``z``
+    spans ``L * H / (2 tan(fov / 2) z)`` px). ``point_size = 1.5 * spacing``
+    (:data:`POINT_SIZE_PER_SPACING`): a square of side ``3 d`` (``d`` the median spacing) reaches
+    past the centres of its nearest neighbours, so neighbouring points overlap; on a surface
+    sampled at random (a decimated map has density ``ln 2 / (pi d^2)`` for that median) such
+    squares cover ``1 - exp(-9 ln 2 / pi) = 86 %`` of it seen face-on, more seen at an angle
+    (``1.0 * spacing`` covers 59 %: the surfaces look dotted). The rule follows the map at any
+    scale and density; the previous one, the trajectory's extent / 500, ignored the map, so a map
+    larger or sparser than the trajectory was a haze of specks.
+    """
+    if spacing is None or not np.isfinite(spacing) or spacing <= 0:
+        return float(fallback)
+    return float(POINT_SIZE_PER_SPACING * spacing)
+
+
 def path_segments(positions: np.ndarray) -> np.ndarray:
     """``(N, 3)`` positions -> ``(N-1, 2, 3)`` consecutive segments."""
     positions = np.asarray(positions, np.float64).reshape(-1, 3)
@@ -171,15 +289,23 @@ def follow_view(T_world_cam: np.ndarray, distance: float) -> tuple[np.ndarray, n
     return C - distance * forward + 0.5 * distance * up, C + distance * forward, up
 
 
+def map_sphere(state: "MapState") -> tuple[np.ndarray, float]:
+    """Where the map is and how big: the median of its points (the camera centres when it has none)
+    and the 90th percentile of their distances to it (at least 1e-3)."""
+    samples = [c.offsets[:2000].astype(np.float64) + c.centre for c in state.clouds.values() if len(c)]
+    points = np.concatenate(samples) if samples else np.asarray(state.T_world_cam)[:, :3, 3].reshape(-1, 3)
+    if not len(points):
+        return np.zeros(3), 1.0
+    centre = np.median(points, axis=0)
+    return centre, max(float(np.percentile(np.linalg.norm(points - centre, axis=1), 90)), 1e-3)
+
+
 def overview(state: "MapState") -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """A viewpoint that frames the map: ``(position, look_at, up)``, looking along the first
     keyframe's viewing direction from 1.6 map radii away, raised a little; ``None`` when empty."""
     if not len(state.T_world_cam):
         return None
-    samples = [c.offsets[:2000] + c.centre for c in state.clouds.values() if len(c)]
-    points = np.concatenate(samples) if samples else state.T_world_cam[:, :3, 3]
-    centre = np.median(points, axis=0)
-    radius = max(float(np.percentile(np.linalg.norm(points - centre, axis=1), 90)), 1e-3)
+    centre, radius = map_sphere(state)
     first = state.T_world_cam[0]
     forward, up = first[:3, 2], -first[:3, 1]
     return centre - 1.6 * radius * forward + 0.5 * radius * up, centre, up

@@ -18,14 +18,15 @@ from __future__ import annotations
 import json
 import logging
 import math
-import pickle
 import re
 from pathlib import Path
 
 import torch
 
 from ...errors import UserError
-from ..hub import DEFAULT_HUB_ID, resolve_weights
+from ..checkpoint import describe_checkpoint
+from ..checkpoint import read_checkpoint as read_weights_file
+from ..hub import DEFAULT_HUB_ID, VGGT_WEIGHTS, resolve_weights
 from .model import SKIPPED_PREFIXES, VGGT, VGGTModelConfig
 
 logger = logging.getLogger(__name__)
@@ -36,41 +37,24 @@ _DTYPES = {"fp32": torch.float32, "float32": torch.float32, "bf16": torch.bfloat
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict | None]:
-    """State dict and embedded config (or ``None``) of a ``.safetensors`` or ``.pt`` file, on CPU.
+    """State dict and embedded config (or ``None``) of a ``.safetensors`` or ``.pt`` file, on CPU
+    (``sl4slam.models.checkpoint.read_checkpoint``: one line for a cut, corrupt or unsafe file).
 
     ``.pt`` files are memory-mapped when possible, so loading them with ``assign=True`` keeps a
     single copy of the weights.
     """
-    path = Path(path)
-    if path.suffix == ".safetensors":
-        from safetensors import safe_open
-        from safetensors.torch import load_file
-
-        with safe_open(str(path), framework="pt") as handle:
-            metadata = handle.metadata() or {}
-        config = json.loads(metadata[CONFIG_METADATA_KEY]) if CONFIG_METADATA_KEY in metadata else None
-        return load_file(str(path), device="cpu"), config
-    try:
-        try:
-            payload = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-        except RuntimeError:  # legacy (non-zip) serialisation cannot be memory-mapped
-            payload = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as exc:
-        raise UserError(
-            f"{path} contains pickled objects other than tensors, which are not loaded for safety; "
-            f"convert a trusted copy to .safetensors ({str(exc).splitlines()[0]})"
-        ) from None
-    if not isinstance(payload, dict):
-        raise UserError(f"{path} does not hold a state dict (found {type(payload).__name__})")
-    config = payload.get(CONFIG_METADATA_KEY)
-    for key in ("model", "state_dict"):
-        if key in payload and isinstance(payload[key], dict):
-            payload = payload[key]
-            break
-    state_dict = {k: v for k, v in payload.items() if isinstance(v, torch.Tensor)}
-    if not state_dict:
-        raise UserError(f"{path} holds no tensors")
+    state_dict, metadata = read_weights_file(path, VGGT_WEIGHTS.what, VGGT_WEIGHTS.refetch())
+    config = metadata.get(CONFIG_METADATA_KEY)
+    if isinstance(config, str):
+        config = json.loads(config)
     return state_dict, config
+
+
+def require_vggt(state_dict: dict, path: str | Path) -> None:
+    """``UserError`` (one line naming the file and what it holds) unless ``state_dict`` is VGGT's."""
+    if "aggregator.camera_token" not in state_dict:
+        raise UserError(f"{path} holds {describe_checkpoint(state_dict)}, not VGGT weights; pass a VGGT checkpoint "
+                        f"with --weights (default {DEFAULT_HUB_ID})")
 
 
 def _block_count(state_dict: dict, prefix: str) -> int:
@@ -89,8 +73,9 @@ def infer_config(state_dict: dict[str, torch.Tensor]) -> VGGTModelConfig:
         patch_size = state_dict["aggregator.patch_embed.patch_embed.proj.weight"].shape[-1]
         grid = math.isqrt(state_dict["aggregator.patch_embed.pos_embed"].shape[1] - 1)
         mlp_hidden = state_dict["aggregator.frame_blocks.0.mlp.fc1.weight"].shape[0]
-    except KeyError as exc:
-        raise UserError(f"not a VGGT checkpoint: key {exc} is missing") from None
+    except KeyError:
+        raise UserError(f"the weights hold {describe_checkpoint(state_dict)}, not VGGT's; pass a VGGT checkpoint "
+                        f"with --weights (default {DEFAULT_HUB_ID})") from None
     num_heads = embed_dim // head_dim
     dense_prefix = "depth_head." if "depth_head.norm.weight" in state_dict else "point_head."
     has_dense = f"{dense_prefix}norm.weight" in state_dict
@@ -168,6 +153,7 @@ def load_vggt(
     """
     path = resolve_weights(weights, cache_dir=cache_dir, local_files_only=local_files_only)
     state_dict, embedded = read_checkpoint(path)
+    require_vggt(state_dict, path)
     if config is None:
         config = VGGTModelConfig.from_dict(embedded) if embedded else infer_config(state_dict)
     with torch.device("meta"):
@@ -226,7 +212,9 @@ def convert_checkpoint(src: str | Path, dst: str | Path, dtype: str = "fp32") ->
     if dst.suffix != ".safetensors":
         raise UserError(f"conversion output must end in .safetensors, got {dst}")
     target = _DTYPES[dtype.lower()]
-    state_dict, embedded = read_checkpoint(resolve_weights(str(src)))
+    path = resolve_weights(str(src))
+    state_dict, embedded = read_checkpoint(path)
+    require_vggt(state_dict, path)
     config = VGGTModelConfig.from_dict(embedded) if embedded else infer_config(state_dict)
     converted = {k: v.to(target) if v.is_floating_point() else v for k, v in state_dict.items()}
     return save_checkpoint(converted, dst, config)

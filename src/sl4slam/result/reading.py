@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import UserError
+from ..errors import UserError
 
 FORMAT_NAME = "sl4slam-result"
 SUPPORTED_VERSIONS = (1, 2)
@@ -220,7 +220,7 @@ def load_result(path: str | Path, keyframes: bool = True) -> RunResult:
     Raises:
         UserError: not a result folder, a format this version does not read, or damaged files.
     """
-    from .io import read_tum_trajectory
+    from ..io import read_tum_trajectory
 
     path = Path(path).expanduser()
     if not path.is_dir():
@@ -249,24 +249,19 @@ def load_result(path: str | Path, keyframes: bool = True) -> RunResult:
     return result
 
 
-def keyframe_colors(keyframe, owner=None) -> np.ndarray:
-    """``(H, W, 3)`` uint8 grid colours of an in-memory stored keyframe (``StoredKeyframe``).
+def keyframe_colors(keyframe, colors=None) -> np.ndarray:
+    """``(H, W, 3)`` uint8 grid colours of a keyframe: the ones it holds (a keyframe read from a
+    result folder), else ``colors(keyframe)`` (a run's ``SLAMResult.keyframe_colors`` or
+    ``SLAMPipeline.colors``, which re-read the frame from the source), else mid-grey.
 
     The viewer and the all-frame localization read keyframe colours only through this function.
-    ``owner`` is what can re-read them: a ``SLAMResult`` (its ``keyframe_colors``) or a running
-    ``SLAMPipeline`` (which re-reads the frame from its source onto the grid). Mid-grey when
-    nothing can.
     """
-    stored = getattr(keyframe, "colors", None)
+    stored = keyframe.colors if isinstance(keyframe, KeyframeData) else None
     if stored is not None:
         return stored
-    if hasattr(owner, "keyframe_colors"):
-        return owner.keyframe_colors(keyframe)
-    if hasattr(owner, "_colors"):
-        from .errors import UserError as _UserError
-
+    if colors is not None:
         try:
-            return owner._colors(keyframe)
-        except _UserError:
+            return colors(keyframe)
+        except UserError:
             pass
     return np.full(tuple(keyframe.shape) + (3,), 128, dtype=np.uint8)

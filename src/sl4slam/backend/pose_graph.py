@@ -1,7 +1,9 @@
-"""The backend interface and the incremental factor graph shared by the SL(4) and Sim(3) backends.
+"""The iSAM2 pose-graph engine on SL(4) or Sim(3) that both graph designs run on.
 
-The graph follows the paper (section 4.4): one node ``H_world_submap`` per submap, a prior at the
-identity on the first node, a between factor per odometry edge and per loop closure. A relative
+The engine is a chain of nodes as the paper's graph (section 4.4): a prior on the first node, a
+between factor from each node to the one before it (odometry), a between factor per loop closure,
+and a weak prior on the first node of every map segment. The submap graph makes each submap a node
+(``H_world_submap``); the keyframe graph each keyframe. A relative
 measurement ``H_i_j`` reads ``x_i ~ H_i_j x_j``, so a consistent map satisfies
 ``H_world_j = H_world_i H_i_j`` and the paper's residual is
 
@@ -22,18 +24,6 @@ Noise. Each factor takes an information matrix in the tangent coordinates of its
 (``Z exp(xi)``, GTSAM's convention); ``None`` means the isotropic ``BackendConfig.sigma``.
 ``sl4slam.backend.evidence`` derives it from the alignment's own inliers.
 
-Map segments. A measurement that fails its checks, or an update that GTSAM cannot solve, never
-ends a run: :meth:`Backend.start_segment` adds the node with a weak prior (``segment_sigma``) at a
-guess instead of an odometry factor, and a failed update is rolled back (the graph is rebuilt
-without the factors of that update) before raising :class:`BackendUpdateError`.
-
-Graph designs. This module's :class:`FactorGraphBackend` is the submap graph (one node per submap);
-``sl4slam.backend.keyframe`` holds the keyframe graph (one node per keyframe). Both take the same
-calls: a submap's odometry measurement ``H_prev_cur`` and loops ``H_i_j`` in *submap* coordinates,
-with :class:`SubmapFrames` (the submap's keyframes and their extrinsics) and the loop's two frames,
-which the submap graph does not need and the keyframe graph uses to place the measurement between
-keyframe nodes; both return a :class:`WorldEstimate`.
-
 The graph is optimized with iSAM2: a pure odometry step only eliminates the newest clique, so its
 cost does not grow with the map. A loop factor makes iSAM2 re-eliminate the path from the loop's
 older node to the root, and relinearize every variable whose step exceeds the threshold; both
@@ -45,7 +35,7 @@ every ``relinearize_skip``-th update and at each of those loop iterations, not a
 step. (One O(map) walk per update remains inside GTSAM: the temporary tree of a re-elimination
 visits the whole tree below it when it is freed: about 0.7 ms per update at 5000 nodes.) The
 estimate then sits within about 1e-4 (relative) of the optimal graph error;
-:meth:`FactorGraphBackend.final_estimates` removes that once, at the end of a run, with a batch
+:meth:`PoseGraph.final_estimates` removes that once, at the end of a run, with a batch
 Gauss-Newton polish of the whole graph. (GTSAM's SL(4)
 chart is first-order, so near the optimum the graph error is flat to about 1e-5 relative and
 solutions differ by ~1e-4 in their entries: beyond that, "converged" has no meaning.)
@@ -59,7 +49,7 @@ prior on the newer node at the older node's current estimate (the keyframe graph
 ``BackendConfig.revisit_priors``; the submap graph, a few hundred nodes where the keyframe graph
 has thousands, stays within 1.1-1.2 late / early after 17 laps without it).
 iSAM2's graph then stays a chain with one loop per closed stretch and unary factors, whatever the
-laps. Every loop is kept exactly in :meth:`FactorGraphBackend.factor_graph`, which the final
+laps. Every loop is kept exactly in :meth:`PoseGraph.factor_graph`, which the final
 polish optimizes, so the map a run ends with is the exact graph's optimum.
 """
 
@@ -68,18 +58,13 @@ from __future__ import annotations
 import bisect
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
 from typing import Any
 
 import gtsam
 import numpy as np
 
 from ..config import BackendConfig
-
-
-class BackendUpdateError(RuntimeError):
-    """GTSAM could not solve the graph with the latest factors; they were removed again."""
-
+from .interface import BackendUpdateError
 
 def check_matrix(name: str, M: Any) -> np.ndarray:
     """``M`` as a finite (4, 4) float64 array, else ``ValueError``."""
@@ -134,43 +119,6 @@ class ClosedSpans:
         return k >= 0 and position <= self.ends[k]
 
 
-@dataclass(frozen=True)
-class SubmapFrames:
-    """The keyframes of one submap, as a keyframe graph needs them (the submap graph ignores them).
-
-    Attributes:
-        frame_indices: the frames in submap order: the shared frame first when ``shared``, then the
-            new keyframes (the last of which is the next submap's shared frame).
-        T_cam_submap: ``(n, 4, 4)`` float64 their extrinsics (camera-from-submap) in this submap.
-        shared: whether the first frame is the shared frame (new in the previous submap).
-    """
-
-    frame_indices: tuple[int, ...]
-    T_cam_submap: np.ndarray
-    shared: bool
-
-    @property
-    def new(self) -> range:
-        """Positions of the new keyframes."""
-        return range(1 if self.shared else 0, len(self.frame_indices))
-
-
-@dataclass
-class WorldEstimate:
-    """Where the map sits in the world under one estimate of the graph.
-
-    Attributes:
-        H_world_submap: ``{submap_id: (4, 4)}`` maps each submap's points into the world (the
-            keyframe graph: through the node of the submap's first frame).
-        H_world_keyframe: ``{frame_index: (4, 4)}`` maps the points of each keyframe's own submap
-            into the world through that keyframe's node, for graphs with a node per keyframe (empty
-            for the submap graph, where every keyframe goes through its submap's node).
-    """
-
-    H_world_submap: dict[int, np.ndarray]
-    H_world_keyframe: dict[int, np.ndarray] = field(default_factory=dict)
-
-
 def gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int = 20) -> gtsam.Values:
     """``values`` moved to the optimum of ``graph`` by batch Gauss-Newton, one step at a time, each
     kept only while it lowers the error (GTSAM's SL(4) chart is first-order, so plain Gauss-Newton
@@ -192,83 +140,14 @@ def gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_it
     return values
 
 
-class Backend(ABC):
-    """Pose graph over submap transforms ``H_world_submap`` (4x4, float64): the interface the
-    pipeline talks to.
+class PoseGraph(ABC):
+    """Incremental (iSAM2) pose graph over nodes numbered by the caller; subclasses fix the group
+    (SL(4) or Sim(3)). Nodes form a chain in the order they are added (:meth:`add_node` links a
+    node to the one before it); loops join any two; every map segment starts with a prior.
 
     Attributes:
         kind: the group ("sl4" or "sim3"); dim: its tangent dimension (15 or 7).
-        last_update_seconds: wall time of the most recent :meth:`update` call.
-    """
-
-    kind: str = ""
-    dim: int = 0
-    last_update_seconds: float = 0.0
-
-    @abstractmethod
-    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, information: np.ndarray | None = None,
-                   frames: SubmapFrames | None = None) -> None:
-        """Add a submap; ``H_prev_cur`` (4, 4) maps its points into the previously added submap's
-        (measured on the shared frame). The first submap takes ``None`` and is anchored at the
-        identity. ``information`` ``(dim, dim)`` is the measurement's (``None``: the isotropic
-        default), in the tangent of ``H_prev_cur``. ``frames``: the submap's keyframes."""
-
-    @abstractmethod
-    def start_segment(self, submap_id: int, H_world_guess: np.ndarray, frames: SubmapFrames | None = None) -> None:
-        """Add a submap without odometry: a weak prior at ``H_world_guess`` starts a new map segment."""
-
-    @abstractmethod
-    def add_loop(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray | None = None,
-                 frames: tuple[int, int] | None = None) -> None:
-        """Add a loop closure ``x_i ~ H_i_j x_j`` (4, 4) between existing submaps ``i`` and ``j``;
-        ``frames``: the keyframe of ``i`` and the keyframe of ``j`` it ties (the retrieved frame
-        and the query keyframe)."""
-
-    @abstractmethod
-    def update(self) -> None:
-        """Optimize incrementally with everything added since the last call; on failure roll the
-        additions back and raise :class:`BackendUpdateError`."""
-
-    @abstractmethod
-    def H_world_submap(self, submap_id: int) -> np.ndarray:
-        """Current estimate of one node, (4, 4) float64."""
-
-    @abstractmethod
-    def estimates(self) -> dict[int, np.ndarray]:
-        """Current estimate of every node: ``{submap_id: (4, 4) float64}``."""
-
-    @abstractmethod
-    def final_estimates(self) -> dict[int, np.ndarray]:
-        """Every node optimized to convergence (for the end of a run; may cost O(map))."""
-
-    @property
-    @abstractmethod
-    def num_submaps(self) -> int:
-        """Nodes in the graph."""
-
-    @property
-    @abstractmethod
-    def segments(self) -> list[int]:
-        """First submap of every map segment, ascending (the first is the first node's)."""
-
-    @abstractmethod
-    def generators(self) -> np.ndarray:
-        """``(dim, 4, 4)`` the tangent basis of the group (``Hat`` of the unit vectors), in which
-        information matrices are expressed."""
-
-    @abstractmethod
-    def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray,
-                  frames: tuple[int, int] | None = None) -> float:
-        """Squared Mahalanobis distance of the loop ``H_i_j`` from the current estimate, under the
-        joint covariance of the nodes it ties plus the measurement's own (``information^-1``)."""
-
-    def world_estimate(self, final: bool = False) -> WorldEstimate:
-        """The map under iSAM2's current estimate, or (``final``) polished to convergence (O(map))."""
-        return WorldEstimate(self.final_estimates() if final else self.estimates())
-
-
-class FactorGraphBackend(Backend):
-    """Incremental (iSAM2) pose graph; subclasses fix the group (SL(4) or Sim(3)).
+        last_update_seconds: wall time of the most recent :meth:`update`.
 
     Args:
         config: sigmas, the loop kernel and iSAM2's thresholds (``BackendConfig``).
@@ -276,18 +155,20 @@ class FactorGraphBackend(Backend):
             keyframe graph turns it on with ``BackendConfig.revisit_priors``.
     """
 
+    kind: str = ""
+    dim: int = 0
+
     def __init__(self, config: BackendConfig, revisit_priors: bool = False) -> None:
-        config.validate()
         self.config = config
         self.revisit_priors = revisit_priors
         self._isam = self._new_isam()
         self._prior_noise = gtsam.noiseModel.Isotropic.Sigma(self.dim, config.prior_sigma)
         self._segment_noise = gtsam.noiseModel.Isotropic.Sigma(self.dim, config.segment_sigma)
 
-        self._order: list[int] = []  # submap ids in insertion order
+        self._order: list[int] = []  # node ids in insertion order
         self._known: set[int] = set()
-        self._rank: dict[int, int] = {}  # submap id -> position in insertion order
-        self._segments: list[int] = []  # first submap of every segment
+        self._rank: dict[int, int] = {}  # node id -> position in insertion order
+        self._segments: list[int] = []  # first node of every segment
         self._pending_factors = gtsam.NonlinearFactorGraph()
         self._pending_values = gtsam.Values()
         self._pending_loops = 0
@@ -304,10 +185,11 @@ class FactorGraphBackend(Backend):
         self._pending_revisits = 0
         self._pending_loop_keys: list[int] = []  # GTSAM keys of the pending loop factors
         self.num_revisit_priors = 0
-        self._last_estimate: np.ndarray | None = None  # of the newest submap, seeds the next guess
+        self._last_estimate: np.ndarray | None = None  # of the newest node, seeds the next guess
 
         self.num_loops = 0
         self.num_updates = 0
+        self.last_update_seconds = 0.0
         self.total_update_seconds = 0.0
         self.last_update_iterations = 0
 
@@ -361,9 +243,9 @@ class FactorGraphBackend(Backend):
 
     # ------------------------------------------------------------------ graph building
     @staticmethod
-    def key(submap_id: int) -> int:
-        """GTSAM key of a submap node."""
-        return gtsam.symbol("s", int(submap_id))
+    def key(node: int) -> int:
+        """GTSAM key of a node."""
+        return gtsam.symbol("s", int(node))
 
     def noise_model(self, information: np.ndarray | None, loop: bool = False) -> Any:
         """GTSAM noise of a measurement: Gaussian with this information (None: isotropic ``sigma``),
@@ -386,75 +268,74 @@ class FactorGraphBackend(Backend):
         H_j_i = self._inverse(H_i_j)
         return self._between_factor(self.key(j), self.key(i), self._to_gtsam(H_j_i), noise)
 
-    def _check_id(self, submap_id: int) -> int:
-        if isinstance(submap_id, bool) or not isinstance(submap_id, (int, np.integer)) or submap_id < 0:
-            raise ValueError(f"submap id must be a non-negative integer, got {submap_id!r}")
-        return int(submap_id)
+    def _check_id(self, node: int) -> int:
+        if isinstance(node, bool) or not isinstance(node, (int, np.integer)) or node < 0:
+            raise ValueError(f"node id must be a non-negative integer, got {node!r}")
+        return int(node)
 
-    def _check_new(self, submap_id: int) -> int:
-        submap_id = self._check_id(submap_id)
-        if submap_id in self._known:
-            raise ValueError(f"submap {submap_id} was already added")
-        return submap_id
+    def _check_new(self, node: int) -> int:
+        node = self._check_id(node)
+        if node in self._known:
+            raise ValueError(f"node {node} was already added")
+        return node
 
     def _push(self, factor: Any, exact: Any = None) -> None:
         """Queue a factor for iSAM2 and its exact form (``None``: the same) for the final polish."""
         self._pending_factors.push_back(factor)
         self._pending_exact.push_back(factor if exact is None else exact)
 
-    def _insert(self, submap_id: int, guess: np.ndarray, factor: Any) -> None:
+    def _insert(self, node: int, guess: np.ndarray, factor: Any) -> None:
         self._push(factor)
-        self._pending_values.insert(self.key(submap_id), self._to_gtsam(guess))
-        self._rank[submap_id] = len(self._order)
-        self._order.append(submap_id)
-        self._known.add(submap_id)
-        self._pending_ids.append(submap_id)
+        self._pending_values.insert(self.key(node), self._to_gtsam(guess))
+        self._rank[node] = len(self._order)
+        self._order.append(node)
+        self._known.add(node)
+        self._pending_ids.append(node)
         self._last_estimate = guess
 
-    def add_submap(self, submap_id: int, H_prev_cur: np.ndarray | None, information: np.ndarray | None = None,
-                   frames: SubmapFrames | None = None) -> None:
-        """Add a node for ``submap_id`` (``frames`` is not needed by this graph).
+    def add_node(self, node: int, H_prev_node: np.ndarray | None, information: np.ndarray | None = None) -> None:
+        """Add ``node``, linked to the previously added node by a between factor.
 
         Args:
-            submap_id: new, non-negative id.
-            H_prev_cur: (4, 4) map from this submap's frame to the previously added submap's frame
-                (``x_prev ~ H_prev_cur x_cur``); ``None`` for the first submap, which gets the prior
-                at the identity. The initial guess is ``H_world_prev @ H_prev_cur``.
+            node: new, non-negative id.
+            H_prev_node: (4, 4) map from this node's frame to the previous node's frame
+                (``x_prev ~ H_prev_node x_node``); ``None`` for the first node, which gets the prior
+                at the identity. The initial guess is ``H_world_prev @ H_prev_node``.
             information: ``(dim, dim)`` of the measurement; ``None``: isotropic ``config.sigma``.
         """
         if not self._order:
-            if H_prev_cur is not None:
-                raise ValueError("the first submap anchors the world frame: pass H_prev_cur=None")
-            self.anchor(submap_id, np.eye(4))
+            if H_prev_node is not None:
+                raise ValueError("the first node anchors the world frame: pass H_prev_node=None")
+            self.anchor(node, np.eye(4))
             return
-        submap_id = self._check_new(submap_id)
-        if H_prev_cur is None:
-            raise ValueError(f"submap {submap_id} needs H_prev_cur (only the first submap takes None)")
-        H_prev_cur = self._check("H_prev_cur", H_prev_cur)
-        guess = self._check("initial guess", self._last_estimate @ H_prev_cur)
-        factor = self.relative_factor(self._order[-1], submap_id, H_prev_cur, self.noise_model(information))
-        self._insert(submap_id, guess, factor)
+        node = self._check_new(node)
+        if H_prev_node is None:
+            raise ValueError(f"node {node} needs H_prev_node (only the first node takes None)")
+        H_prev_node = self._check("H_prev_node", H_prev_node)
+        guess = self._check("initial guess", self._last_estimate @ H_prev_node)
+        factor = self.relative_factor(self._order[-1], node, H_prev_node, self.noise_model(information))
+        self._insert(node, guess, factor)
 
-    def anchor(self, submap_id: int, H_world: np.ndarray) -> None:
+    def anchor(self, node: int, H_world: np.ndarray) -> None:
         """Add the first node with the strong prior (``config.prior_sigma``) at ``H_world``: it fixes
-        the world frame (``add_submap`` anchors the first submap at the identity)."""
-        submap_id = self._check_new(submap_id)
+        the world frame (:meth:`add_node` anchors the first node at the identity)."""
+        node = self._check_new(node)
         if self._order:
-            raise ValueError(f"node {submap_id} cannot anchor the world: the graph already has nodes")
+            raise ValueError(f"node {node} cannot anchor the world: the graph already has nodes")
         H_world = self._check("anchor", H_world)
-        self._segments.append(submap_id)
-        self._insert(submap_id, H_world, self._prior_factor(self.key(submap_id), self._to_gtsam(H_world), self._prior_noise))
+        self._segments.append(node)
+        self._insert(node, H_world, self._prior_factor(self.key(node), self._to_gtsam(H_world), self._prior_noise))
 
-    def start_segment(self, submap_id: int, H_world_guess: np.ndarray, frames: SubmapFrames | None = None) -> None:
-        """Add ``submap_id`` with a weak prior (``config.segment_sigma``) at ``H_world_guess``."""
-        submap_id = self._check_new(submap_id)
+    def start_segment(self, node: int, H_world_guess: np.ndarray) -> None:
+        """Add ``node`` with a weak prior (``config.segment_sigma``) at ``H_world_guess`` instead of a
+        link to the node before it: the first node of a new map segment."""
+        node = self._check_new(node)
         guess = self._check("segment guess", H_world_guess)
-        self._segments.append(submap_id)
-        self._insert(submap_id, guess, self._prior_factor(self.key(submap_id), self._to_gtsam(guess), self._segment_noise))
+        self._segments.append(node)
+        self._insert(node, guess, self._prior_factor(self.key(node), self._to_gtsam(guess), self._segment_noise))
 
-    def add_loop(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray | None = None,
-                 frames: tuple[int, int] | None = None) -> None:
-        """Add a loop factor ``x_i ~ H_i_j x_j`` between already added submaps ``i != j``.
+    def add_loop(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray | None = None) -> None:
+        """Add a loop factor ``x_i ~ H_i_j x_j`` between already added nodes ``i != j``.
 
         Uses ``BackendConfig.loop_kernel`` (none / Huber / Cauchy, width in whitened units). With
         ``revisit_priors``, a loop whose older node lies on a cycle an earlier loop
@@ -479,11 +360,11 @@ class FactorGraphBackend(Backend):
 
     def _check_loop(self, i: int, j: int, H_i_j: np.ndarray) -> tuple[int, int, np.ndarray]:
         i, j = self._check_id(i), self._check_id(j)
-        for submap_id in (i, j):
-            if submap_id not in self._known:
-                raise ValueError(f"loop refers to submap {submap_id}, which was not added")
+        for node in (i, j):
+            if node not in self._known:
+                raise ValueError(f"loop refers to node {node}, which was not added")
         if i == j:
-            raise ValueError(f"a loop needs two different submaps, got {i} twice")
+            raise ValueError(f"a loop needs two different nodes, got {i} twice")
         return i, j, self._check("H_i_j", H_i_j)
 
     def is_revisit(self, i: int, j: int) -> bool:
@@ -605,12 +486,12 @@ class FactorGraphBackend(Backend):
         O(map), on failure only."""
         if start is None:
             start = self._committed_linearization_point()
-        for submap_id in self._pending_ids:
-            self._order.remove(submap_id)
-            self._known.discard(submap_id)
-            self._rank.pop(submap_id, None)
-            if submap_id in self._segments:
-                self._segments.remove(submap_id)
+        for node in self._pending_ids:
+            self._order.remove(node)
+            self._known.discard(node)
+            self._rank.pop(node, None)
+            if node in self._segments:
+                self._segments.remove(node)
         self._pending_ids = []
         self.num_loops -= self._pending_loops
         self.num_revisit_priors -= self._pending_revisits
@@ -641,53 +522,54 @@ class FactorGraphBackend(Backend):
             return None
 
     # ------------------------------------------------------------------ results
-    def H_world_submap(self, submap_id: int) -> np.ndarray:
-        """Current estimate of ``H_world_submap`` (4, 4) float64 (initial guess until :meth:`update`)."""
-        submap_id = self._check_id(submap_id)
-        if submap_id not in self._known:
-            raise KeyError(f"submap {submap_id} was not added")
-        key = self.key(submap_id)
+    def estimate(self, node: int) -> np.ndarray:
+        """Current estimate of one node, (4, 4) float64 (its initial guess until :meth:`update`)."""
+        node = self._check_id(node)
+        if node not in self._known:
+            raise KeyError(f"node {node} was not added")
+        key = self.key(node)
         if self._pending_values.exists(key):
             return self._from_gtsam(self._at(self._pending_values, key))
         return self._from_gtsam(self._estimate_one(key))
 
     def estimates(self) -> dict[int, np.ndarray]:
-        """``{submap_id: H_world_submap (4, 4) float64}`` for every node, in insertion order.
+        """``{node: (4, 4) float64}`` for every node, in insertion order.
 
-        Costs O(number of submaps) (a full back-substitution); nodes added since the last
+        Costs O(number of nodes) (a full back-substitution); nodes added since the last
         :meth:`update` report their initial guess.
         """
         values = self._isam.calculateBestEstimate() if self._isam.size() else gtsam.Values()
         out: dict[int, np.ndarray] = {}
-        for submap_id in self._order:
-            key = self.key(submap_id)
+        for node in self._order:
+            key = self.key(node)
             source = self._pending_values if self._pending_values.exists(key) else values
-            out[submap_id] = self._from_gtsam(self._at(source, key))
+            out[node] = self._from_gtsam(self._at(source, key))
         return out
 
     def final_estimates(self, max_iterations: int = 20) -> dict[int, np.ndarray]:
         """Like :meth:`estimates`, polished to convergence by batch Gauss-Newton on the whole graph.
 
         Starts at iSAM2's estimate (which is within about the relinearization threshold of the
-        optimum, so one or two iterations suffice: about 40 ms for 300 SL(4) submaps) and keeps
+        optimum, so one or two iterations suffice: about 40 ms for 300 SL(4) nodes) and keeps
         each step only if it lowers the graph error. iSAM2's own state is not changed, so the graph
-        can keep growing afterwards. Costs O(number of submaps): meant for the end of a run.
+        can keep growing afterwards. Costs O(number of nodes): meant for the end of a run.
         """
         if self._pending_factors.size() or self._pending_values.size():
             self.update()
         if not self._isam.size():
             return self.estimates()
         values = self.polished_values(max_iterations)
-        return {submap_id: self._from_gtsam(self._at(values, self.key(submap_id))) for submap_id in self._order}
+        return {node: self._from_gtsam(self._at(values, self.key(node))) for node in self._order}
 
     def polished_values(self, max_iterations: int = 20) -> gtsam.Values:
         """iSAM2's estimate polished by batch Gauss-Newton on :meth:`factor_graph` (see
         :meth:`final_estimates`), as ``gtsam.Values``."""
         return gauss_newton(self.factor_graph(), self._isam.calculateBestEstimate(), max_iterations)
 
-    def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray,
-                  frames: tuple[int, int] | None = None) -> float:
-        """See :meth:`Backend.loop_chi2`. The two nodes' joint covariance comes from iSAM2's Bayes
+    def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray) -> float:
+        """Squared Mahalanobis distance of the loop ``H_i_j`` between nodes ``i`` and ``j`` from the
+        current estimate, under the two nodes' joint covariance plus the measurement's own
+        (``information^-1``; see ``sl4slam.backend.interface.Backend.loop_chi2``). The joint covariance comes from iSAM2's Bayes
         tree (equal to a batch marginalization of the whole graph to 1e-11, which cost 0.3 s at 4000
         nodes against 9-30 ms: benchmarks/results/keyframe_graph.md), so call it for loop candidates only.
         A revisit (:meth:`is_revisit`) is tested as iSAM2 would take it: the prior on the newer node
@@ -718,24 +600,17 @@ class FactorGraphBackend(Backend):
         (as the final polish optimizes them), e.g. for a batch comparison."""
         return gtsam.NonlinearFactorGraph(self._exact_factors)
 
-    def incremental_graph(self) -> gtsam.NonlinearFactorGraph:
-        """The factors iSAM2 holds: :meth:`factor_graph` with revisits as priors (:meth:`is_revisit`)."""
-        return gtsam.NonlinearFactorGraph(self._isam.getFactorsUnsafe())
-
-    def gtsam_values(self) -> gtsam.Values:
-        """The optimized estimate as ``gtsam.Values`` (keys from :meth:`key`)."""
-        return self._isam.calculateBestEstimate()
-
     @property
-    def num_submaps(self) -> int:
+    def num_nodes(self) -> int:
         return len(self._order)
 
     @property
-    def submap_ids(self) -> list[int]:
+    def node_ids(self) -> list[int]:
+        """Every node, in insertion order."""
         return list(self._order)
 
     @property
     def segments(self) -> list[int]:
-        """First submap of every map segment (the first is submap 0's)."""
+        """First node of every map segment (the first is the first node's)."""
         return list(self._segments)
 

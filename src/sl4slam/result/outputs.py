@@ -20,29 +20,23 @@ A result folder (format version 2, ``summary.json["format"]``):
 from __future__ import annotations
 
 import json
-import os
 import resource
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from .errors import UserError
-from .metrics import ATEResult, ate
-from .paths import RUN_FILES, clear_run, holds_run  # noqa: F401 (part of the outputs API)
-from .pipeline import SLAMResult
-from .submap import StoredKeyframe
+from ..errors import UserError
+from ..metrics import ATEResult, ate
+from ..atomic import atomic_path, atomic_write_bytes, atomic_write_npz
+from ..submap import StoredKeyframe
+from . import SLAMResult
+
+if TYPE_CHECKING:
+    from ..resolve import ResolvedConfig
 
 RESULT_FORMAT = {"name": "sl4slam-result", "version": 2}
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_bytes(data)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def keyframe_world_points(keyframe: StoredKeyframe, H_world_submap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,13 +89,11 @@ def write_map_and_keyframes(result: SLAMResult, out_dir: Path, max_points: int, 
 
 def _write_keyframe(directory: Path, keyframe: StoredKeyframe, X: np.ndarray, valid: np.ndarray, colors: np.ndarray,
                     result: SLAMResult, index: int) -> None:
-    target = directory / f"{keyframe.frame_index:06d}.npz"
-    tmp = directory / f".{keyframe.frame_index:06d}.{os.getpid()}.tmp.npz"
-    np.savez(tmp, points_world=np.where(valid[..., None], X, 0.0).astype(np.float32), mask=valid, colors=colors,
-             confidence=keyframe.confidence_percentile().astype(np.float16), K=result.K[index],
-             T_world_cam=result.T_world_cam[index], timestamp=keyframe.timestamp, frame_index=keyframe.frame_index,
-             submap_id=keyframe.submap_id, segment=int(result.segments[index]))
-    os.replace(tmp, target)
+    atomic_write_npz(directory / f"{keyframe.frame_index:06d}.npz", dict(
+        points_world=np.where(valid[..., None], X, 0.0).astype(np.float32), mask=valid, colors=colors,
+        confidence=keyframe.confidence_percentile().astype(np.float16), K=result.K[index],
+        T_world_cam=result.T_world_cam[index], timestamp=keyframe.timestamp, frame_index=keyframe.frame_index,
+        submap_id=keyframe.submap_id, segment=int(result.segments[index])), compressed=False)
 
 
 def voxel_downsample(xyz: np.ndarray, rgb: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
@@ -192,10 +184,9 @@ def plot_trajectories(path: Path, curves: dict[str, np.ndarray], gt: np.ndarray 
     ax.set_title(title, fontsize=10)
     ax.legend(loc="best", fontsize=8)
     ax.grid(alpha=0.3)
-    tmp = Path(path).with_name(f".{Path(path).stem}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
     plt.close(fig)
-    os.replace(tmp, path)
 
 
 def summarize(result: SLAMResult, config_dict: dict, ate_result: ATEResult | None, extra: dict | None = None) -> dict:
@@ -215,6 +206,7 @@ def summarize(result: SLAMResult, config_dict: dict, ate_result: ATEResult | Non
                                          "segments") if k in stats},
         "dropped_frames": stats.get("dropped_frames", {}),
         "frontend_failures": stats.get("frontend_failures", []),
+        "notes": stats.get("notes", []),
         "inlier_ratio": {"odometry": ratios(odometry), "loops": ratios(loops)},
         "fallbacks": [{"submaps": [e.submap_from, e.submap_to], "frame": e.frame_index, "reason": e.fallback}
                       for e in odometry if e.fallback],
@@ -240,15 +232,27 @@ def summarize(result: SLAMResult, config_dict: dict, ate_result: ATEResult | Non
     return summary
 
 
+def _settings(config) -> tuple["ResolvedConfig", dict]:
+    """The resolved config of a run (given or resolved here) and what the summary records of it."""
+    from ..config import config_to_dict
+    from ..resolve import resolve
+
+    resolved = resolve(config)
+    return resolved, {"config": config_to_dict(resolved.config), "resolved": resolved.choices(),
+                      "graph": {"group": resolved.group.value, "design": resolved.graph.value,
+                                "alignment": resolved.alignment.value}}
+
+
 def write_checkpoint(result: SLAMResult, out_dir: Path, config, extra: dict | None = None) -> dict:
-    """``trajectory.txt`` and ``summary.json`` of the current state (cheap; called during a run)."""
-    from .config import config_to_dict
-    from .io import write_tum_trajectory
+    """``trajectory.txt`` and ``summary.json`` of the current state (cheap; called during a run).
+    ``config``: the run's resolved config (``sl4slam.resolve``; a ``SLAMConfig`` is resolved here)."""
+    from ..io import write_tum_trajectory
 
     out_dir = Path(out_dir)
     if len(result.keyframes) and np.all(np.isfinite(result.T_world_cam)):
         write_tum_trajectory(out_dir / "trajectory.txt", result.timestamps, result.T_world_cam)
-    summary = summarize(result, config_to_dict(config), None, {"status": "running", **(extra or {})})
+    _, recorded = _settings(config)
+    summary = summarize(result, recorded.pop("config"), None, {"status": "running", **recorded, **(extra or {})})
     atomic_write_bytes(out_dir / "summary.json", json.dumps(summary, indent=2).encode())
     return summary
 
@@ -256,13 +260,15 @@ def write_checkpoint(result: SLAMResult, out_dir: Path, config, extra: dict | No
 def write_outputs(result: SLAMResult, out_dir: Path, config, source_name: str = "", skipped: Sequence[str] = (),
                   status: str = "complete", extra: dict | None = None) -> dict:
     """Write ``trajectory.txt`` (and ``trajectory_gt.txt``), ``map.ply``, ``keyframes/``,
-    ``summary.json``, ``trajectory.png``. Returns the summary dict.
+    ``summary.json``, ``trajectory.png``. Returns the summary dict. ``config``: the run's resolved
+    config (a ``SLAMConfig`` is resolved here).
 
     Raises ``UserError`` when a file cannot be written (the message names it).
     """
-    from .config import alignment_model, config_to_dict
-    from .io import write_tum_trajectory
+    from ..io import write_tum_trajectory
 
+    resolved, recorded = _settings(config)
+    config = resolved.config
     out_dir = Path(out_dir)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -274,20 +280,18 @@ def write_outputs(result: SLAMResult, out_dir: Path, config, source_name: str = 
             write_tum_trajectory(out_dir / "trajectory_gt.txt", result.timestamps, result.T_world_cam_gt)
         keyframe_dir = out_dir / "keyframes" if config.output.save_keyframe_points else None
         map_points = write_map_and_keyframes(result, out_dir, config.output.max_map_points, config.output.voxel_size,
-                                             seed=config.alignment.seed, keyframe_dir=keyframe_dir)
+                                             seed=config.output.seed, keyframe_dir=keyframe_dir)
         ate_result = compute_ate(result)
         if len(result.keyframes):
             curves = {"estimate": ate_result.positions_aligned if ate_result else result.T_world_cam[:, :3, 3]}
             name = f"{source_name}, " if source_name else ""
-            title = f"{name}{config.backend.kind} {config.backend.design} graph, top view"
+            title = f"{name}{resolved.group.value} {resolved.graph.value} graph, top view"
             if ate_result is not None:
                 title += f"\nATE RMSE {ate_result.rmse:.4f} m over {ate_result.num_poses} keyframes (Sim(3)-aligned)"
             plot_trajectories(out_dir / "trajectory.png", curves, ate_result.positions_gt if ate_result else None, title)
-        summary = summarize(result, config_to_dict(config), ate_result,
+        summary = summarize(result, recorded.pop("config"), ate_result,
                             {"status": status, "source": source_name, "skipped_inputs": list(skipped),
-                             "map_points": int(map_points),
-                             "graph": {"group": config.backend.kind, "design": config.backend.design,
-                                       "alignment": alignment_model(config)}, **(extra or {})})
+                             "map_points": int(map_points), **recorded, **(extra or {})})
         atomic_write_bytes(out_dir / "summary.json", json.dumps(summary, indent=2).encode())
     except OSError as exc:
         raise UserError(f"cannot write the results into {out_dir}: {exc.strerror or exc} ({exc.filename or out_dir})") from None

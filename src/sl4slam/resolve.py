@@ -1,0 +1,303 @@
+"""From the settings a user gave to the settings a run uses: every "auto" settled, in one place.
+
+:func:`resolve` checks the config tree once (each section's ``validate``), looks the frontend up
+in the registry (a model's name, or its weights: a hub id or a file whose keys it recognizes) and
+settles every "auto" by the rules below, each with the reason it gives the user. Everything
+downstream (the composition root, the pipeline, the outputs) reads the :class:`ResolvedConfig` and
+never applies a rule again; the runner prints :meth:`ResolvedConfig.lines`, the summary records
+:meth:`ResolvedConfig.choices`.
+
+The rules (sources in the settings' docstrings, ``sl4slam.config``):
+
+- graph design: "keyframe" (VGGT-SLAM 2.0) for the SL(4) group, "submap" for Sim(3);
+- alignment model: "calibration" for the keyframe graph, "sl4" for the SL(4) submap graph,
+  "sim3-cameras" for Sim(3); a projective model on a Sim(3) graph is refused;
+- metric upgrade: on for the SL(4) submap graph only; links are completed from the cameras only
+  where it runs, on SL(4) links;
+- attention loop check: never without retrieval; on with the keyframe graph when the frontend
+  scores pairs; "on" with a frontend that cannot is refused;
+- retrieval: SALAD when its weights are found locally, else ORB;
+- device: CUDA when available (only looked up when a model runs); ``cuda`` without a GPU is refused;
+- model weights: the model's released weights;
+- simulator: every error magnitude not set explicitly from its profile.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import struct
+from dataclasses import dataclass
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+from .config import SLAMConfig
+from .errors import UserError
+from .registry import FrontendEntry, frontend_entries, frontend_entry, frontend_names
+from .types import FrontendCapabilities
+
+
+class Group(str, Enum):
+    """The group of the graph's transforms."""
+
+    SL4 = "sl4"
+    SIM3 = "sim3"
+
+
+class GraphDesign(str, Enum):
+    """One node per submap (VGGT-SLAM) or per keyframe (VGGT-SLAM 2.0)."""
+
+    SUBMAP = "submap"
+    KEYFRAME = "keyframe"
+
+
+class AlignmentModel(str, Enum):
+    """What measures the link between two submaps (``AlignmentConfig.model``)."""
+
+    SL4 = "sl4"
+    CALIBRATION = "calibration"
+    HYBRID = "hybrid"
+    SIM3_POINTS = "sim3-points"
+    SIM3_CAMERAS = "sim3-cameras"
+
+    @property
+    def group(self) -> Group:
+        """The group of its measurements."""
+        return Group.SIM3 if self in (AlignmentModel.SIM3_POINTS, AlignmentModel.SIM3_CAMERAS) else Group.SL4
+
+
+class RetrievalKind(str, Enum):
+    SALAD = "salad"
+    ORB = "orb"
+    NONE = "none"
+
+
+@dataclass(frozen=True)
+class ResolvedConfig:
+    """The settings of one run, every "auto" settled and checked.
+
+    Attributes:
+        config: the settled tree: the user's settings with each "auto" replaced by what it became
+            (``backend.graph``, ``alignment.model``, ``upgrade.mode``, ``loops.verify_attention``,
+            ``retrieval.kind``, ``model.weights``, ``device``, the simulator's magnitudes).
+        frontend: the registry entry of the frontend.
+        capabilities: what the frontend can do (a replayed cache: what the recording holds).
+        group, graph, alignment, retrieval: the settled choices, typed.
+        metric_upgrade: whether the run ends with the metric upgrade.
+        complete_links: whether fallback links on planar frames are completed from the cameras.
+        attention_check: whether loops pass the attention check.
+        device: where the models run ("cpu", "cuda", "cuda:N").
+        notes: why each "auto" became what it is, one line each.
+    """
+
+    config: SLAMConfig
+    frontend: FrontendEntry
+    capabilities: FrontendCapabilities
+    group: Group
+    graph: GraphDesign
+    alignment: AlignmentModel
+    retrieval: RetrievalKind
+    metric_upgrade: bool
+    complete_links: bool
+    attention_check: bool
+    device: str
+    notes: tuple[str, ...] = ()
+
+    @property
+    def needs_ground_truth(self) -> bool:
+        return self.capabilities.needs_ground_truth
+
+    def choices(self) -> dict[str, Any]:
+        """The settled choices as plain values (``summary.json["resolved"]``)."""
+        return {"frontend": self.frontend.name, "group": self.group.value, "graph": self.graph.value,
+                "alignment": self.alignment.value, "retrieval": self.retrieval.value,
+                "metric_upgrade": self.metric_upgrade, "complete_links": self.complete_links,
+                "attention_check": self.attention_check, "device": self.device, "notes": list(self.notes)}
+
+    def lines(self) -> list[str]:
+        """What the run uses, for the console: one line, then the reasons of the "auto" choices."""
+        group = {"sl4": "SL(4)", "sim3": "Sim(3)"}[self.group.value]
+        head = (f"{self.frontend.name} frontend on {self.device}; {group} {self.graph.value} graph, "
+                f"{self.alignment.value} links; retrieval {self.retrieval.value}; "
+                f"metric upgrade {'on' if self.metric_upgrade else 'off'}")
+        return [head] + [f"  {note}" for note in self.notes]
+
+
+def resolve(config: SLAMConfig | ResolvedConfig, capabilities: FrontendCapabilities | None = None,
+            probe_device: bool = True) -> ResolvedConfig:
+    """Check ``config`` and settle every "auto" (see the module doc); a resolved config is returned as is.
+
+    Args:
+        config: the user's settings (not changed).
+        capabilities: what the frontend can do when that is not the registered model's (a replayed
+            cache holds only what its recording asked for).
+        probe_device: settle the device on this machine (``False`` where the run happens elsewhere,
+            e.g. an evaluation planned here for a cluster: the device stays as given).
+
+    Raises:
+        UserError: a bad setting, an unknown frontend, or choices that cannot go together.
+    """
+    if isinstance(config, ResolvedConfig):
+        return config
+    config.validate()
+    settled = copy.deepcopy(config)
+    notes: list[str] = []
+    entry = _frontend(settled, notes)
+    capabilities = capabilities or entry.capabilities
+    group = Group(settled.backend.kind)
+    graph = _graph(settled, group, notes)
+    alignment = _alignment(settled, group, graph, notes)
+    metric_upgrade = _metric_upgrade(settled, group, graph, notes)
+    complete_links = settled.upgrade.complete_links and group is Group.SL4 and metric_upgrade
+    retrieval = _retrieval(settled, notes)
+    attention = _attention(settled, graph, retrieval, capabilities, notes)
+    device = _device(settled, entry, retrieval) if probe_device else settled.device
+    settled.sim = settled.sim.resolved()
+    if settled.false_loops.rate > 0 and retrieval is RetrievalKind.NONE:
+        notes.append("false loops: none are injected (there is no retrieval to propose loops)")
+    return ResolvedConfig(settled, entry, capabilities, group, graph, alignment, retrieval, metric_upgrade,
+                          complete_links, attention, device, tuple(notes))
+
+
+def _frontend(settled: SLAMConfig, notes: list[str]) -> FrontendEntry:
+    """The frontend's entry; ``--model`` given as weights (a hub id or a file) names its model."""
+    name = settled.frontend
+    if name not in frontend_names():
+        found = model_of_weights(name)
+        if found is None:
+            frontend_entry(name)  # raises the one line listing the names
+        notes.append(f"model: {found.name} (recognized from {name})")
+        settled.frontend, settled.model.weights, name = found.name, name, found.name
+    entry = frontend_entry(name)
+    if entry.weights is not None and settled.model.weights == "auto":
+        settled.model.weights = entry.weights.repo_id
+    return entry
+
+
+def model_of_weights(weights: str) -> FrontendEntry | None:
+    """The registered model whose weights ``weights`` are: a hub id one of them names (its own or a
+    file in it), or a local file whose tensor names one of them recognizes; ``None`` otherwise."""
+    from .models.hub import is_hub_id
+
+    if is_hub_id(weights):
+        repo = weights.partition(":")[0].lower()
+        return next((e for e in frontend_entries() if e.weights is not None and e.weights.repo_id.lower() == repo), None)
+    path = Path(weights).expanduser()
+    if not path.is_file():
+        return None
+    keys = _tensor_names(path)
+    return next((e for e in frontend_entries() if e.recognizes is not None and e.recognizes(keys)), None)
+
+
+def _tensor_names(path: Path) -> dict[str, None]:
+    """Tensor names of a weights file (a safetensors header is read without loading anything)."""
+    if path.suffix.lower() == ".safetensors":
+        try:
+            with open(path, "rb") as handle:
+                (length,) = struct.unpack("<Q", handle.read(8))
+                header = json.loads(handle.read(length))
+            return dict.fromkeys(k for k in header if k != "__metadata__")
+        except (OSError, ValueError, struct.error):
+            return {}
+    from .models.checkpoint import read_checkpoint
+
+    try:
+        state_dict, _ = read_checkpoint(path, "model", "check the file")
+    except UserError:
+        return {}
+    return dict.fromkeys(state_dict)
+
+
+def _graph(settled: SLAMConfig, group: Group, notes: list[str]) -> GraphDesign:
+    if settled.backend.graph == "auto":
+        settled.backend.graph = "keyframe" if group is Group.SL4 else "submap"
+        notes.append(f"graph: {settled.backend.graph} (auto: the {'SL(4)' if group is Group.SL4 else 'Sim(3)'} default)")
+    graph = GraphDesign(settled.backend.graph)
+    if graph is GraphDesign.KEYFRAME and group is not Group.SL4:
+        raise UserError("--graph keyframe needs --backend sl4 (the keyframe graph is an SL(4) graph); "
+                        "use --graph submap or auto with --backend sim3")
+    return graph
+
+
+def _alignment(settled: SLAMConfig, group: Group, graph: GraphDesign, notes: list[str]) -> AlignmentModel:
+    if settled.alignment.model == "auto":
+        model = ("sim3-cameras" if group is Group.SIM3 else
+                 "calibration" if graph is GraphDesign.KEYFRAME else "sl4")
+        settled.alignment.model = model
+        notes.append(f"links: {model} (auto: the {graph.value} graph's in {group.value})")
+    alignment = AlignmentModel(settled.alignment.model)
+    if group is Group.SIM3 and alignment.group is Group.SL4:
+        raise UserError(f"--alignment {alignment.value} measures projective transforms, which a Sim(3) graph cannot "
+                        "hold; use --alignment sim3-points or sim3-cameras with --backend sim3")
+    return alignment
+
+
+def _metric_upgrade(settled: SLAMConfig, group: Group, graph: GraphDesign, notes: list[str]) -> bool:
+    if settled.upgrade.mode == "auto":
+        on = group is Group.SL4 and graph is GraphDesign.SUBMAP
+        settled.upgrade.mode = "on" if on else "off"
+        notes.append("metric upgrade: on (auto: the SL(4) submap graph's map inherits one projective distortion)" if on
+                     else f"metric upgrade: off (auto: it is for the SL(4) submap graph; --metric-upgrade on applies it "
+                          f"to the {group.value} {graph.value} graph too)")
+    return settled.upgrade.mode == "on"
+
+
+def _retrieval(settled: SLAMConfig, notes: list[str]) -> RetrievalKind:
+    if settled.retrieval.kind == "auto":
+        from .models.salad import find_salad_weights, salad_cache_dir
+
+        if settled.retrieval.salad_weights is not None or find_salad_weights() is not None:
+            settled.retrieval.kind = "salad"
+            notes.append("retrieval: salad (auto: its weights were found)")
+        else:
+            settled.retrieval.kind = "orb"
+            notes.append(f"retrieval: orb (auto: SALAD weights not found; pass --salad-weights or put dino_salad.ckpt "
+                         f"in {salad_cache_dir()})")
+    return RetrievalKind(settled.retrieval.kind)
+
+
+def _attention(settled: SLAMConfig, graph: GraphDesign, retrieval: RetrievalKind,
+               capabilities: FrontendCapabilities, notes: list[str]) -> bool:
+    setting = settled.loops.verify_attention
+    if setting == "on" and not capabilities.scores_pairs:
+        raise UserError(f"--loop-verify-attention on needs image-match ratios, which the {settled.frontend} frontend "
+                        "does not give; use --loop-verify-attention off or auto")
+    if retrieval is RetrievalKind.NONE:
+        on = False
+    elif setting == "auto":
+        on = graph is GraphDesign.KEYFRAME and capabilities.scores_pairs
+        if graph is GraphDesign.KEYFRAME and not on:
+            notes.append(f"attention loop check: off (auto: the {settled.frontend} frontend gives no image-match "
+                         "ratios; loops pass the view and graph checks)")
+    else:
+        on = setting == "on"
+    settled.loops.verify_attention = "on" if on else "off"
+    return on
+
+
+def _device(settled: SLAMConfig, entry: FrontendEntry, retrieval: RetrievalKind) -> str:
+    """The models' device; torch is imported only when a model runs."""
+    uses_models = entry.weights is not None or retrieval is RetrievalKind.SALAD
+    if not uses_models:
+        settled.device = "cpu" if settled.device == "auto" else settled.device
+        return settled.device
+    import torch
+
+    if settled.device == "auto":
+        settled.device = "cuda" if torch.cuda.is_available() else "cpu"
+    elif settled.device.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise UserError(f"--device {settled.device} was requested but no CUDA GPU is available; use --device cpu "
+                            "or auto")
+        index = int(settled.device[5:] or 0) if settled.device.startswith("cuda:") else 0
+        if index >= torch.cuda.device_count():
+            raise UserError(f"--device {settled.device}: this machine has {torch.cuda.device_count()} GPU(s) "
+                            f"(cuda:0 to cuda:{torch.cuda.device_count() - 1})")
+    return settled.device
+
+
+def settled_dict(resolved: ResolvedConfig) -> dict:
+    """The settled tree as a plain dict (what a run records as its settings)."""
+    return dataclasses.asdict(resolved.config)
