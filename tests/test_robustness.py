@@ -12,10 +12,10 @@ import pytest
 from sl4slam.backend import BackendUpdateError, SL4PoseGraph, SubmapBackend
 from sl4slam.config import SLAMConfig
 from sl4slam.errors import UserError
-from sl4slam.frontend import CachingFrontend, make_frontend
+from sl4slam.frontend import CachingFrontend, ReplayFrontend, make_frontend
 from sl4slam.frontend.simulated import SimulatedFrontend
 from sl4slam.io import ListSource, open_source
-from sl4slam.result.outputs import compute_ate
+from sl4slam.result.outputs import compute_ate, write_outputs
 from sl4slam.pipeline import FrontendFailedError, SLAMPipeline
 from sl4slam.runner import RunInterrupted, run_slam
 from sl4slam.synthetic import write_synthetic_sequence
@@ -146,6 +146,82 @@ def test_a_graph_update_that_fails_starts_a_new_segment(small_world: Path) -> No
     steps = np.linalg.norm(np.diff(result.T_world_cam[:, :3, 3], axis=0), axis=1)
     first = next(i for i, k in enumerate(result.keyframes) if k.submap_id == 3)
     assert steps[first - 1] < 5 * np.median(steps)
+
+
+class BrokenNodeGraph(SL4PoseGraph):
+    """GTSAM fails on every update that holds the chosen submap's node, the odometry and the new
+    segment's prior alike (a node the graph can never take)."""
+
+    def __init__(self, config, fail_at: int):
+        super().__init__(config)
+        self.fail_at = fail_at
+
+    def _solve(self, factors, values, loop_keys):
+        if self.fail_at in self._pending_ids:
+            raise RuntimeError("IndeterminateSystemException: near variable s3 (simulated)")
+        return super()._solve(factors, values, loop_keys)
+
+
+def test_a_submap_the_graph_cannot_take_even_as_a_new_segment_is_dropped(small_world: Path, tmp_path: Path) -> None:
+    """The second failure, inside the new segment's own update, used to escape as a traceback."""
+    config = small_config()
+    config.retrieval.kind = "none"
+    _, reference = run(small_world, config)
+    pipeline, result = run(small_world, config, backend=SubmapBackend(BrokenNodeGraph(config.backend, fail_at=3)))
+    dropped = [e for e in result.edges if e.kind == "segment" and e.submap_to == 3]
+    assert len(dropped) == 1 and "could not be started either" in dropped[0].reason and "dropped" in dropped[0].reason
+    lost = [k.frame_index for k in reference.keyframes if k.submap_id == 3]
+    assert result.stats["dropped_frames"]["graph failed"] == len(lost) > 0
+    assert not set(lost) & {k.frame_index for k in result.keyframes}
+    # the next submap shares the last keyframe that was kept: one segment, and the map stays accurate
+    assert result.stats["segments"] == 1 and 3 not in pipeline.backend.submap_ids
+    assert np.isfinite(result.T_world_cam).all()
+    assert compute_ate(result).rmse < 2 * compute_ate(reference).rmse + 0.01
+
+
+def test_a_final_polish_that_fails_keeps_isam2s_map(small_world: Path, tmp_path: Path, monkeypatch) -> None:
+    """A singular node in the final batch polish used to end the run; the run now ends with iSAM2's
+    estimate, its outputs written, and a note saying so."""
+    config = small_config()
+    config.retrieval.kind = "none"
+    pipeline, _ = run(small_world, config)
+    snapshot = pipeline.snapshot()
+    original = pipeline.backend.world_estimate
+
+    def singular(final: bool = False):
+        if final:
+            raise RuntimeError("\nIndeterminate linear system detected near variable s9 (simulated)")
+        return original()
+
+    monkeypatch.setattr(pipeline.backend, "world_estimate", singular)
+    result = pipeline.result()
+    np.testing.assert_array_equal(result.T_world_cam, snapshot.T_world_cam)
+    assert any("final polish of the graph failed" in note and "Indeterminate" in note for note in result.stats["notes"])
+    summary = write_outputs(result, tmp_path / "out", pipeline.resolved)
+    assert summary["notes"] and (tmp_path / "out" / "trajectory.txt").is_file()
+
+
+def test_a_stages_user_error_ends_the_run_at_once_with_its_line(small_world: Path, tmp_path: Path) -> None:
+    """A replayed recording that does not match the run is a problem of the settings, not of the
+    frames: the run ends at the first submap with the cache's own line, instead of skipping three
+    submaps as failed frontends first."""
+    config = small_config()
+    config.retrieval.kind = "none"
+    config.output.cache_frontend = True
+    run_slam(small_world, tmp_path / "recorded", config, progress=False)
+    config.output.cache_frontend = False
+    config.submap.size = 5  # other submaps than the recording holds
+    calls = []
+    original = ReplayFrontend.reconstruct
+    ReplayFrontend.reconstruct = lambda self, frames, submap_id, **kw: calls.append(submap_id) or original(
+        self, frames, submap_id, **kw)
+    try:
+        with pytest.raises(RunInterrupted, match="frontend cache mismatch at submap 0") as caught:
+            run_slam(small_world, tmp_path / "replayed", config, replay_dir=tmp_path / "recorded" / "frontend_cache",
+                     progress=False)
+    finally:
+        ReplayFrontend.reconstruct = original
+    assert calls == [0] and "\n" not in str(caught.value)
 
 
 def test_backend_rolls_back_a_failed_update() -> None:

@@ -23,7 +23,6 @@ Every file is written to a temporary name and renamed into place.
 from __future__ import annotations
 
 import json
-import os
 import struct
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -37,7 +36,8 @@ from scipy.spatial.transform import Rotation
 
 from .errors import UserError
 from .geometry import se3_inverse
-from .result.outputs import atomic_write_bytes, write_ply
+from .atomic import atomic_path, atomic_write_bytes
+from .result.outputs import write_ply
 from .result.reading import KeyframeData, KeyframeRecord, RunResult, load_result
 
 FORMATS = ("colmap", "nerfstudio", "ply")
@@ -124,11 +124,10 @@ def _sample_keyframe(record: KeyframeRecord, data: KeyframeData, limit: int) -> 
 
 
 def _write_image(path: Path, rgb: np.ndarray) -> None:
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
     params = [cv2.IMWRITE_PNG_COMPRESSION, 1] if path.suffix == ".png" else [cv2.IMWRITE_JPEG_QUALITY, 95]
-    if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params):
-        raise UserError(f"cannot write image {path}; check that the output folder is writable")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params):
+            raise UserError(f"cannot write image {path}; check that the output folder is writable")
 
 
 def _keyframe_pass(records: Sequence[KeyframeRecord], images_dir: Path | None, points_per_keyframe: int,

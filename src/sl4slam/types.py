@@ -256,7 +256,7 @@ class Aligner(ABC):
     """Measures ``H_a_b`` between two submaps from one frame reconstructed in both.
 
     Attributes:
-        model: what it fits ("sl4", "sim3-points", "sim3-cameras").
+        model: what it fits ("sl4", "calibration", "hybrid", "sim3-points", "sim3-cameras").
         group: the group of its measurements ("sl4" or "sim3"), which the graph must hold.
     """
 

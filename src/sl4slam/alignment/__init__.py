@@ -1,7 +1,11 @@
 """Relative alignment of submaps from a shared frame's points (paper 4.2).
 
-- :func:`make_aligner`: the pipeline's alignment stage (:class:`SL4Aligner`,
-  :class:`Sim3PointAligner` or :class:`Sim3CameraAligner`, by ``AlignmentConfig.model``).
+- :func:`make_aligner`: the pipeline's alignment stage, by the resolved ``AlignmentConfig.model``:
+  :class:`SL4Aligner` ("sl4", the paper's 15-DOF fit), :class:`CalibrationAligner` ("calibration",
+  VGGT-SLAM 2.0's link of the shared frame's two cameras; the keyframe graph's default),
+  :class:`HybridAligner` ("hybrid": that link, or the 15-DOF fit where it explains the frame
+  markedly better), :class:`Sim3PointAligner` ("sim3-points") and :class:`Sim3CameraAligner`
+  ("sim3-cameras", the Sim(3) graph's default).
 - :func:`estimate_sl4`: 15-DOF projective ``H_a_b`` (SL(4)) by 5-point DLT in RANSAC, with a
   Sim(3) fallback when the projective fit is degenerate.
 - :func:`estimate_sim3`: 7-DOF similarity by 3-point Umeyama in RANSAC.

@@ -13,7 +13,7 @@ Factors (``x_a ~ Z x_b`` read as in ``sl4slam.backend.pose_graph``, whose factor
 - between submaps, between the shared frame's two nodes: the odometry measurement, which the
   pipeline hands over in submap coordinates (``H_prev_cur``), moved onto the nodes:
   ``L = T_cam,prev H_prev_cur T_cam,cur^-1``. For the "calibration" alignment this is exactly the
-  calibration-and-scale link ``K_prev^-1 K_cur diag(s, s, s, 1)`` (``sl4slam.alignment.calibration``);
+  calibration-and-scale link ``K_prev^-1 K_cur diag(s, s, s, 1)`` (``sl4slam.alignment.sim3.calibration_scale_link``);
   for a 15-DOF fit it is that fit seen from the shared camera. Its information (from
   ``sl4slam.backend.evidence``, in the tangent of ``H_prev_cur``) is moved with it by the adjoint
   (:func:`transport_information`), so the edge claims the same certainty about the same thing;

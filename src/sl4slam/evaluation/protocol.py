@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from ..atomic import atomic_write_text
 from ..config import SLAMConfig, config_from_dict, config_to_dict
 from ..errors import UserError
 from .datasets import Dataset, Sequence, get_dataset
@@ -362,9 +363,7 @@ def _store_cache(recorded: Path, target: Path, key: dict) -> str | None:
 
 
 def _write_json(path: Path, payload: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(payload, indent=2, default=str) + "\n")
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(payload, indent=2, default=str) + "\n")
 
 
 def _import_pipeline() -> None:

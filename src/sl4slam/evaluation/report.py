@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..atomic import atomic_path, atomic_write_text
 from ..config import SLAMConfig, config_to_dict
 from .datasets import get_dataset
 from .protocol import SEEDED_SETTINGS
@@ -217,7 +218,7 @@ def write_runs_csv(path: Path, results: list[dict]) -> None:
             "keyframes": r.get("counts", {}).get("keyframes", ""), "seconds_slam": seconds.get("slam", ""),
             "seconds_total": seconds.get("total", ""), "frontend": r.get("frontend") or "", "reason": r.get("reason") or "",
         })
-    _atomic_text(path, buffer.getvalue())
+    atomic_write_text(path, buffer.getvalue())
 
 
 def plot_sequence(path: Path, title: str, runs: list[dict]) -> bool:
@@ -268,18 +269,11 @@ def plot_sequence(path: Path, title: str, runs: list[dict]) -> bool:
     bars.grid(alpha=0.3, axis="y")
     fig.suptitle(title)
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(tmp, dpi=100)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
-    os.replace(tmp, path)
     return True
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def write_report(out_dir: Path, outcome: "EvalOutcome", settings: "EvalSettings", config: SLAMConfig) -> dict[str, Any]:
@@ -293,7 +287,7 @@ def write_report(out_dir: Path, outcome: "EvalOutcome", settings: "EvalSettings"
     points = [p.label for p in outcome.points]
     summary = summarize(outcome.results, points, sequences, metrics)
     files: dict[str, Any] = {"tables": str(out_dir / "tables.md"), "runs": str(out_dir / "runs.csv"), "json": str(out_dir / "results.json")}
-    _atomic_text(out_dir / "tables.md", markdown(outcome, settings, config, summary))
+    atomic_write_text(out_dir / "tables.md", markdown(outcome, settings, config, summary))
     write_runs_csv(out_dir / "runs.csv", outcome.results)
     figures = []
     for point in outcome.points:
@@ -319,5 +313,5 @@ def write_report(out_dir: Path, outcome: "EvalOutcome", settings: "EvalSettings"
         "summary": summary,
         "runs": [{k: v for k, v in r.items() if k != "trajectory"} for r in outcome.results],
     }
-    _atomic_text(out_dir / "results.json", json.dumps(payload, indent=2, default=str) + "\n")
+    atomic_write_text(out_dir / "results.json", json.dumps(payload, indent=2, default=str) + "\n")
     return files

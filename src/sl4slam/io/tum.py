@@ -13,13 +13,13 @@ shared). Frames without a match keep ``depth`` / ``T_world_cam`` = ``None``.
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from sl4slam.atomic import atomic_write_text
 from sl4slam.errors import UserError
 from sl4slam.geometry import project_to_so3
 from sl4slam.io._common import IndexedSource, logger, read_depth, read_rgb, select
@@ -128,14 +128,7 @@ def write_tum_trajectory(path: str | Path, timestamps: np.ndarray, T_world_cam: 
         numbers = " ".join(f"{v:.9f}" for v in (*translation, *quaternion))
         lines.append(f"{stamp:.9f} {numbers}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(temporary, "w", encoding="utf-8") as handle:
-            handle.write("\n".join(lines) + "\n")
-        os.replace(temporary, path)
-    finally:
-        if temporary.exists():
-            temporary.unlink()
+    atomic_write_text(path, "\n".join(lines) + "\n")
     return path
 
 

@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..atomic import atomic_path
 from ..paths import user_cache_dir
 from ..errors import MissingWeightsError, UserError
 from .checkpoint import check_weights_file, describe_checkpoint, read_checkpoint
@@ -309,9 +310,8 @@ def find_salad_weights(weights: str | os.PathLike | None = None) -> Path | None:
 def _download(url: str, destination: Path) -> None:
     """Download ``url`` to ``destination`` atomically (a partial file never takes its name)."""
     destination.parent.mkdir(parents=True, exist_ok=True)
-    partial = destination.with_name(destination.name + ".partial")
-    torch.hub.download_url_to_file(url, str(partial), progress=True)
-    partial.replace(destination)
+    with atomic_path(destination) as partial:
+        torch.hub.download_url_to_file(url, str(partial), progress=True)
 
 
 SALAD_REFETCH = (f"delete it and download {SALAD_WEIGHTS_URL} again, then pass it with --salad-weights PATH "
