@@ -130,3 +130,30 @@ def test_missing_weights_suggest_the_current_hub_command(tmp_path) -> None:
         resolve_weights("facebook/VGGT-1B", cache_dir=tmp_path / "hub", local_files_only=True)
     assert "`hf download facebook/VGGT-1B model.pt`" in str(caught.value)
     assert VGGT_WEIGHTS.flag in str(caught.value)
+
+
+def test_a_cut_weights_file_fails_a_run_before_any_frame_is_read(tmp_path, tensors, monkeypatch) -> None:
+    import cv2
+    import numpy as np
+
+    from sl4slam import io
+    from sl4slam.config import SLAMConfig
+    from sl4slam.runner import run_slam
+
+    whole = tmp_path / "model.safetensors"
+    save_file(tensors, str(whole))
+    cut = tmp_path / "cut.safetensors"
+    cut.write_bytes(whole.read_bytes()[:200])
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(folder / f"{i:04d}.png"), np.full((48, 64, 3), 40 * i, np.uint8))
+    read = []
+    original = io.ImageFolderSource._load
+    monkeypatch.setattr(io.ImageFolderSource, "_load", lambda self, position: read.append(position) or original(self, position))
+    config = SLAMConfig(device="cpu")
+    config.model.weights = str(cut)
+    config.retrieval.kind = "none"
+    with pytest.raises(WeightsFileError) as caught:
+        run_slam(folder, tmp_path / "out", config, progress=False)
+    assert "cut short" in _one_line(caught, cut) and read == [] and not (tmp_path / "out").exists()

@@ -2,7 +2,7 @@
 
 The library's front door (each name is imported on first use, so ``import sl4slam`` stays cheap):
 
-- :class:`SLAMConfig` (``sl4slam.config``): every setting; ``resolve`` settles it;
+- :class:`SLAMConfig` (``sl4slam.config``): every setting; ``sl4slam.resolve.resolve`` settles it;
 - :func:`run_slam` (``sl4slam.runner``): a source to a result folder, as ``sl4slam run`` does;
 - :class:`SLAMPipeline` (``sl4slam.pipeline``): the same in memory, over a frame source from
   :func:`open_source` (``sl4slam.io``);
@@ -19,7 +19,6 @@ __version__ = "0.1.0"
 _PUBLIC = {
     "SLAMConfig": "sl4slam.config",
     "SimulatorConfig": "sl4slam.config",
-    "resolve": "sl4slam.resolve",
     "run_slam": "sl4slam.runner",
     "SLAMPipeline": "sl4slam.pipeline",
     "open_source": "sl4slam.io",

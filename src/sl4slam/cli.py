@@ -266,7 +266,8 @@ def build_parser() -> argparse.ArgumentParser:
                            usage="sl4slam run SOURCE --out DIR [--config FILE] [settings]",
                            description="Every setting below can also be given in a TOML/JSON file (--config); "
                                        "flags override the file. Advanced settings are listed last.")
-    run.add_argument("source", help="image folder, video file, TUM RGB-D or 7-Scenes sequence folder")
+    run.add_argument("source", help="image folder, video file, TUM RGB-D or 7-Scenes sequence folder, camera index "
+                                    "(0, 1, ...) or stream URL (rtsp://, http://): the kind is detected")
     run.add_argument("--out", required=True, help="output folder")
     run.add_argument("--config", help="TOML or JSON file of settings (flags override it)")
     run.add_argument("--replay", help="replay recorded frontend outputs from this folder instead of running the model")

@@ -77,10 +77,10 @@ def require_open3d():
     """The ``open3d`` module, or a UserError that says how to install it."""
     try:
         import open3d
-    except ImportError:
+    except ImportError as exc:  # the cause matters: not installed, or installed but failing to load
         raise UserError(
-            "dense metrics need Open3D (ICP): pip install \"sl4slam[eval]\", or skip them with --no-dense"
-        ) from None
+            f"dense metrics need Open3D (ICP), which cannot be imported ({type(exc).__name__}: {exc}): "
+            "pip install \"sl4slam[eval]\", or skip them with --no-dense") from None
     return open3d
 
 
