@@ -1,17 +1,20 @@
 """Viewer: time to first frame and memory for a 2-million-point map.
 
-A result folder with ``--keyframes`` keyframes at 518x294 (about 2M confident points; fabricated
-with exactly known cameras, as the tests make them) is shown with ``sl4slam view`` in a subprocess
-and opened in headless Chromium (software WebGL: no GPU here, so browser-side times are
-pessimistic). For each point budget (the default 1M, and one above the map's size, i.e. no
-decimation), per run:
+A result folder with ``--keyframes`` keyframes at 518x294 looking into a room with a desk (about
+2M confident points on its surfaces; fabricated with exactly known cameras, as the tests make
+them: ``write_known_result(scene="room")``) is shown with ``sl4slam view`` in a subprocess and
+opened in headless Chromium (software WebGL: no GPU here, so browser-side times are pessimistic).
+For each point budget (250k, the default 1M, and one above the map's size, i.e. no decimation),
+per run:
 
-* ready: from starting ``sl4slam view`` to its "loaded" line (read, decimate, serve);
+* ready: from starting ``sl4slam view`` to its "loaded" line (read, decimate, measure the point
+  spacing, serve);
 * first frame: from starting ``sl4slam view`` to the first screenshot whose 3D canvas shows the
   map (the browser is already open; the page is loaded when the server is ready);
+* drawn: the fraction of the canvas that first screenshot covers (``tests/browser.py``);
 * memory: peak resident memory of the viewer process (VmHWM) after the first frame.
 
-Writes ``benchmarks/results/viewer.md``.
+Writes ``benchmarks/results/viewer.md`` (or ``--results PATH``).
 Usage: ``python benchmarks/bench_viewer.py [--keyframes 17] [--repeats 3]``.
 """
 
@@ -51,7 +54,7 @@ def peak_rss_mib(pid: int) -> float:
     return float("nan")
 
 
-def one_run(page, folder: Path, budget: int) -> tuple[float, float, float]:
+def one_run(page, folder: Path, budget: int) -> tuple[float, float, float, float]:
     port = free_port()
     start = time.perf_counter()
     proc = subprocess.Popen([sys.executable, "-m", "sl4slam.cli", "view", str(folder), "--port", str(port),
@@ -66,7 +69,7 @@ def one_run(page, folder: Path, budget: int) -> tuple[float, float, float]:
                 break
         page.goto(f"http://127.0.0.1:{port}")
         # a screenshot waits for the next rendered frame: software WebGL draws a large cloud slowly
-        while drawn_fraction(page.screenshot(timeout=600_000)) < 0.05:
+        while (drawn := drawn_fraction(page.screenshot(timeout=600_000))) < 0.05:
             if time.perf_counter() - start > 600:
                 raise RuntimeError("no frame within 600 s")
             time.sleep(0.1)
@@ -75,7 +78,7 @@ def one_run(page, folder: Path, budget: int) -> tuple[float, float, float]:
     finally:
         page.goto("about:blank")  # disconnect first, so the server is not busy sending when it stops
         interrupt(proc)
-    return ready, first, memory
+    return ready, first, drawn, memory
 
 
 def main() -> None:
@@ -84,12 +87,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--keyframes", type=int, default=17)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--results", type=Path, default=RESULTS, help="where to write the table")
     args = parser.parse_args()
     chromium = chromium_path()
     rows = {}
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch) / "run"
-        truth = write_known_result(folder, count=args.keyframes, width=518, height=294, submap_size=4, confidence=True)
+        truth = write_known_result(folder, count=args.keyframes, width=518, height=294, submap_size=4, confidence=True,
+                                   scene="room")
         points = sum(int(m.sum()) for m in truth["masks"].values())
         with sync_playwright() as playwright:
             browser = launch(playwright, Path(scratch) / "profile", chromium)
@@ -107,20 +112,22 @@ def main() -> None:
         f"average {load:.1f} at the end of the run). Python {platform.python_version()}. Date: {time.strftime('%Y-%m-%d')}.",
         f"Command: `python benchmarks/bench_viewer.py --keyframes {args.keyframes} --repeats {args.repeats}`",
         "",
-        f"A map of {points:,} confident points ({args.keyframes} keyframes at 518x294, {(args.keyframes + 3) // 4} submaps, "
-        f"float16 confidence saved); medians of {args.repeats} runs. *Ready*: `sl4slam view` started -> map read, "
-        "decimated and served. *First frame*: `sl4slam view` started -> the browser's 3D canvas shows the map. "
+        f"A room with a desk, {points:,} confident points ({args.keyframes} keyframes at 518x294, "
+        f"{(args.keyframes + 3) // 4} submaps, float16 confidence saved); medians of {args.repeats} runs. *Ready*: "
+        "`sl4slam view` started -> map read, decimated, point spacing measured, served. *First frame*: `sl4slam view` "
+        "started -> the browser's 3D canvas shows the map; *drawn*: the fraction of the canvas it covers then. "
         "*Memory*: peak resident memory of the viewer process.",
         "",
-        "| point budget | points sent | ready (s) | first frame (s) | viewer memory (MiB) |",
-        "|---|---|---|---|---|",
+        "| point budget | points sent | ready (s) | first frame (s) | drawn | viewer memory (MiB) |",
+        "|---|---|---|---|---|---|",
     ]
     for budget, values in rows.items():
         sent = min(budget, points)
         label = f"{budget:,}" if budget <= points else f"{budget:,} (all points)"
         lines.append(f"| {label} | {sent:,} | {statistics.median(v[0] for v in values):.1f} | "
-                     f"{statistics.median(v[1] for v in values):.1f} | {statistics.median(v[2] for v in values):.0f} |")
-    RESULTS.write_text("\n".join(lines) + "\n")
+                     f"{statistics.median(v[1] for v in values):.1f} | {statistics.median(v[2] for v in values):.2f} | "
+                     f"{statistics.median(v[3] for v in values):.0f} |")
+    args.results.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

@@ -1,6 +1,6 @@
 """Headless Chromium for the viewer's tests and benchmark: launch options, how much of the 3D view
-is drawn, waiting for the first screenshot that shows it, and stopping a viewer subprocess as a
-user would.
+is drawn, waiting for the first screenshot (or the first moment of the page) that shows it, and
+stopping a viewer subprocess as a user would.
 
 Nothing here measures how fast the machine is: waits are for a condition (a screenshot that shows
 the map, the process' exit), and their bounds are only there so that a hang fails instead of
@@ -21,8 +21,8 @@ BROWSER_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 VIEWPORT = {"width": 1000, "height": 700}
 HANG_S = 300.0
-"""Bound of every wait: only a hang reaches it (software WebGL on a loaded 2-core machine draws a
-100k-point page in under 10 s; benchmarks/results/viewer.md)."""
+"""Bound of every wait: only a hang reaches it (software WebGL on a loaded 2-core machine draws the
+tests' 88k-point page in under 10 s, a 1M-point one in about 20 s: benchmarks/results/viewer.md)."""
 DRAWN = 0.02
 """Fraction of the canvas above which a screenshot shows something (an empty page: 0.001, the
 orientation gizmo)."""
@@ -65,16 +65,44 @@ def first_drawn(page, level: float = DRAWN, bound_s: float = HANG_S) -> bytes:
         time.sleep(0.05)
 
 
-def same_region(png_a: bytes, png_b: bytes, box: dict) -> float:
-    """Fraction of the pixels of ``box`` (a Playwright bounding box: x, y, width, height in CSS px
-    at scale 1) that are the same (within 8 per channel) in two screenshots."""
-    import cv2
+CANVAS_AND_TEXT = """() => {
+  // the 3D view (the largest canvas: viser's WebGL one, drawn with preserveDrawingBuffer) and the
+  // page's text, read in one go: JavaScript runs one task at a time, so both are of the same moment
+  const gl = [...document.querySelectorAll('canvas')].reduce(
+      (best, c) => (!best || c.width * c.height > best.width * best.height ? c : best), null);
+  let fraction = 0;
+  if (gl && gl.width > 340 && gl.height > 150) {
+    const copy = document.createElement('canvas');
+    copy.width = gl.width; copy.height = gl.height;
+    const ctx = copy.getContext('2d');
+    ctx.drawImage(gl, 0, 0);
+    const x1 = Math.round(gl.width * (1 - 340 / window.innerWidth)), y0 = Math.round(gl.height * 150 / window.innerHeight);
+    const data = ctx.getImageData(0, y0, x1, gl.height - y0).data;
+    let drawn = 0;
+    for (let i = 0; i < data.length; i += 4) {
+      const a = data[i + 3] / 255;  // over the page's white, as the screen shows it
+      const dark = a * ((255 - data[i]) + (255 - data[i + 1]) + (255 - data[i + 2]));
+      if (dark > 60) drawn++;
+    }
+    fraction = drawn / (data.length / 4);
+  }
+  return [fraction, document.body.innerText];
+}"""
 
-    a, b = (cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR) for png in (png_a, png_b))
-    x0, y0 = int(np.ceil(box["x"])), int(np.ceil(box["y"]))
-    x1, y1 = int(box["x"] + box["width"]), int(box["y"] + box["height"])
-    crop_a, crop_b = a[y0:y1, x0:x1].astype(int), b[y0:y1, x0:x1].astype(int)
-    return float((np.abs(crop_a - crop_b).max(axis=2) <= 8).mean())
+
+def first_drawn_text(page, level: float = DRAWN, bound_s: float = HANG_S) -> tuple[float, str]:
+    """The page's text at the first moment its 3D canvas shows something (more than ``level`` of it
+    drawn, counted as :func:`drawn_fraction` counts a screenshot, CSS opacity aside): the canvas'
+    pixels and the text are read in one JavaScript task, so the text is the one shown with that
+    frame. Returns (drawn fraction, text); AssertionError when nothing is drawn within ``bound_s``."""
+    end = time.monotonic() + bound_s
+    while True:
+        fraction, text = page.evaluate(CANVAS_AND_TEXT)
+        if fraction > level:
+            return fraction, text
+        if time.monotonic() > end:
+            raise AssertionError(f"nothing drawn on the canvas within {bound_s:.0f} s")
+        time.sleep(0.02)
 
 
 def interrupt(proc: subprocess.Popen, bound_s: float = HANG_S) -> tuple[str, str]:

@@ -23,5 +23,7 @@ FIXTURES_DIR = Path(__file__).resolve().parent / "fixtures"
 
 @pytest.fixture(scope="session")
 def fixtures_dir() -> Path:
-    """The compact model fixtures vendored with the tests (``tests/fixtures/README.md``): always present."""
+    """The compact model fixtures vendored with the tests (``tests/fixtures/README.md``; ``subset.py``
+    there makes the VGGT and SALAD ones from the full reference fixtures): always present, so the
+    model parity tests never need ``shared/``."""
     return FIXTURES_DIR

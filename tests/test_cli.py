@@ -31,7 +31,7 @@ def test_flags_are_generated_from_the_config_tree() -> None:
     args = build_parser().parse_args([
         "run", "src", "--out", "o", "--submap-size", "32", "--tau-disparity", "50", "--backend", "sim3",
         "--retrieval", "none", "--sim-perspective", "0.1", "--tau-conf", "10", "--ransac-iterations", "500",
-        "--no-save-keyframe-points", "--salad-weights", "w.ckpt",
+        "--keyframes", "none", "--salad-weights", "w.ckpt",
     ])
     config = config_from_args(args)
     assert config.submap.size == 32
@@ -41,7 +41,7 @@ def test_flags_are_generated_from_the_config_tree() -> None:
     assert config.sim.perspective == 0.1
     assert config.submap.tau_conf == 10.0
     assert config.alignment.ransac_iterations == 500
-    assert config.output.save_keyframe_points is False
+    assert config.output.keyframes == "none"
     assert config.retrieval.salad_weights == "w.ckpt"
 
 

@@ -98,11 +98,14 @@ def test_seven_scenes_ground_truth_is_numbered_by_frame(seven_scenes_root) -> No
 
 
 def test_grid_is_the_product_of_typed_values() -> None:
-    points = parse_grid(["submap.size=8,16", "backend.kind=sl4,sim3", "output.save_keyframe_points=false"])
+    points = parse_grid(["submap.size=8,16", "backend.kind=sl4,sim3", "output.keyframes=none",
+                         "submap.use_point_head=false"])
     assert len(points) == 4
-    assert points[0].overrides == (("submap.size", 8), ("backend.kind", "sl4"), ("output.save_keyframe_points", False))
+    assert points[0].overrides == (("submap.size", 8), ("backend.kind", "sl4"), ("output.keyframes", "none"),
+                                   ("submap.use_point_head", False))
     config = points[3].apply(SLAMConfig())
-    assert config.submap.size == 16 and config.backend.kind == "sim3" and config.output.save_keyframe_points is False
+    assert config.submap.size == 16 and config.backend.kind == "sim3" and config.output.keyframes == "none"
+    assert config.submap.use_point_head is False
     assert parse_grid(["frontend=simulated"])[0].apply(SLAMConfig()).frontend == "simulated"
     assert parse_grid(None)[0].label == "default"
 

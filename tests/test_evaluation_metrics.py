@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from sl4slam.io import write_tum_trajectory
 from sl4slam.config import SLAMConfig
 from sl4slam.errors import UserError
 from sl4slam.evaluation import get_dataset
@@ -132,6 +136,14 @@ def test_resize_depth_is_nearest_neighbour() -> None:
     assert resize_depth(depth, 6, 8) is not None and np.array_equal(resize_depth(depth, 6, 8), depth)
 
 
+def _complete_result_folder(run_dir: Path, stamps: np.ndarray, poses: np.ndarray) -> None:
+    """The rest of a result folder around hand-written keyframe files (the dense evaluation reads
+    them through ``sl4slam.result.reading``, as every consumer does)."""
+    write_tum_trajectory(run_dir / "trajectory.txt", stamps, poses)
+    (run_dir / "summary.json").write_text(json.dumps({"format": {"name": "sl4slam-result", "version": 3}, "edges": [],
+                                                      "counts": {"keyframes": len(stamps)}}))
+
+
 def test_keyframe_clouds_match_a_render_at_the_model_resolution(tmp_path) -> None:
     """A perfect estimate at half the dataset's resolution has zero dense error.
 
@@ -153,7 +165,9 @@ def test_keyframe_clouds_match_a_render_at_the_model_resolution(tmp_path) -> Non
         mask = np.ones((24, 32), bool)
         mask[:4] = False  # unconfident pixels are left out of the estimate
         np.savez(run_dir / "keyframes" / f"{index:06d}.npz", points_world=points.reshape(24, 32, 3).astype(np.float32),
-                 mask=mask, K=K_model, T_world_cam=poses[index], timestamp=index / 30.0)
+                 mask=mask, K=K_model, T_world_cam=poses[index], timestamp=index / 30.0, submap_id=0,
+                 colors=np.zeros((24, 32, 3), np.uint8))
+    _complete_result_folder(run_dir, np.array([0, 5, 11]) / 30.0, poses[[0, 5, 11]])
     dataset = get_dataset("7scenes")
     sequence = Sequence("7scenes", "chess", root / "chess" / "seq-01")
     estimate, truth, used = keyframe_clouds(run_dir, dataset, sequence, SLAMConfig(), max_depth=4.5)
@@ -177,7 +191,9 @@ def test_keyframe_clouds_refuse_a_run_made_with_other_frames(tmp_path) -> None:
     run_dir = tmp_path / "run"
     (run_dir / "keyframes").mkdir(parents=True)
     np.savez(run_dir / "keyframes" / "000002.npz", points_world=np.zeros((24, 32, 3), np.float32), mask=np.ones((24, 32), bool),
-             K=np.eye(3), T_world_cam=np.eye(4), timestamp=4 / 30.0)  # frame 2 of a stride-2 run is frame-000004
+             K=np.eye(3), T_world_cam=np.eye(4), timestamp=4 / 30.0, submap_id=0,
+             colors=np.zeros((24, 32, 3), np.uint8))  # frame 2 of a stride-2 run is frame-000004
+    _complete_result_folder(run_dir, np.array([4 / 30.0]), np.eye(4)[None])
     with pytest.raises(UserError, match="stride"):
         keyframe_clouds(run_dir, get_dataset("7scenes"), Sequence("7scenes", "chess", root / "chess" / "seq-01"),
                         SLAMConfig(), 4.5)

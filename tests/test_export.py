@@ -138,7 +138,7 @@ def test_conventions_are_inverse_of_each_other() -> None:
 
 def test_export_of_a_run_without_keyframe_files_names_the_option(tmp_path: Path) -> None:
     write_known_result(tmp_path / "run", keyframes=False)
-    with pytest.raises(UserError, match="--save-keyframe-points"):
+    with pytest.raises(UserError, match="--keyframes compact"):
         export_result(tmp_path / "run", "colmap")
     assert not (tmp_path / "run" / "export_colmap").exists()
 

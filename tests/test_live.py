@@ -230,9 +230,11 @@ def test_ctrl_c_ends_the_iteration_cleanly(tmp_path: Path) -> None:
 
 def test_pipeline_runs_on_a_video_played_at_its_frame_rate(tmp_path: Path) -> None:
     """End to end: the synthetic world as a video at 30 frames/s, played on a manual clock on which
-    each submap takes the pipeline 0.4 s (so it drops the frames that arrive meanwhile, the same
-    ones on any machine); the simulated frontend takes its ground truth from the world by raw frame
-    number (a live camera has none)."""
+    the pipeline takes 1/60 s per frame and 0.1 s more per keyframe (so it drops the frames that
+    arrive meanwhile, the same ones on any machine: the clock moves when the source asks how many
+    keyframes the pipeline has made, at each frame, whatever thread finishes the submaps); the
+    simulated frontend takes its ground truth from the world by raw frame number (a live camera has
+    none)."""
     import dataclasses
 
     from result_folders import small_world_config
@@ -249,25 +251,32 @@ def test_pipeline_runs_on_a_video_played_at_its_frame_rate(tmp_path: Path) -> No
     class WithTruth(SimulatedFrontend):
         capabilities = dataclasses.replace(SimulatedFrontend.capabilities, needs_ground_truth=False)
 
-        def reconstruct(self, frames, submap_id):
+        def reconstruct(self, frames, submap_id, **options):
             full = []
             for frame in frames:
                 truth = world.get(int(frame.path.split("#")[1]))
                 full.append(type(truth)(**{**truth.__dict__, "index": frame.index, "rgb": frame.rgb}))
-            return super().reconstruct(full, submap_id)
+            return super().reconstruct(full, submap_id, **options)
 
     config = small_world_config(perspective=0.05)
     config.retrieval.kind = "none"
     clock = ManualClock()
     source = LiveSource(tmp_path / "w.avi", clock=clock)
-    submaps = []
-    pipeline = SLAMPipeline(config, WithTruth(config.sim),
-                            on_submap=lambda p, s: (submaps.append(s), clock.advance(0.4)))
-    source.keyframe_counter = lambda: pipeline.selector.num_keyframes
+    pipeline = SLAMPipeline(config, WithTruth(config.sim))
+    made = [0]
+
+    def keyframes_made() -> int:  # asked by the source when the pipeline wants the next frame
+        count = pipeline.selector.num_keyframes
+        clock.advance(1 / 60 + 0.1 * (count - made[0]))  # the work on the frame it just had
+        made[0] = count
+        return count
+
+    source.keyframe_counter = keyframes_made
     result = pipeline.run(source, progress=False)
     source.close()
     assert source.delivered + source.dropped == 120
-    assert len(submaps) >= 2 and source.dropped >= 11 * len(submaps[:-1])  # 0.4 s of work: 12 frames, 11 dropped
+    # each keyframe's 0.1 s lets 3 frames arrive, 2 of them dropped (the last keyframe may meet the end)
+    assert source.dropped >= 2 * (len(source.kept) - 1) > 0
     assert result.stats["frames"] == source.delivered and len(result.keyframes) >= 2
     assert source.kept == [k.frame_index for k in result.keyframes]  # exactly the keyframes were kept
     assert np.isfinite(result.T_world_cam).all()

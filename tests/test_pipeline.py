@@ -141,7 +141,7 @@ def test_outputs_and_replay(world: Path, tmp_path: Path) -> None:
     saved = json.loads((out / "summary.json").read_text())
     assert saved["ate"]["rmse"] == pytest.approx(compute_ate(expected).rmse, rel=1e-6)
     assert saved["counts"]["loops"] >= 1 and saved["fallbacks"]
-    assert saved["status"] == "complete" and saved["format"] == {"name": "sl4slam-result", "version": 2}
+    assert saved["status"] == "complete" and saved["format"] == {"name": "sl4slam-result", "version": 3}
     assert (out / "trajectory.png").stat().st_size > 1000
     assert not list(out.rglob("*.tmp*"))
     # replay the recorded frontend with another backend: no simulator needed
@@ -192,7 +192,7 @@ def test_cli_runs_with_salad_retrieval_from_a_random_checkpoint(world: Path, tmp
     proc = subprocess.run(
         [sys.executable, "-m", "sl4slam.cli", "run", str(world), "--out", str(tmp_path / "out"), "--frontend", "simulated",
          "--tau-disparity", "12", "--retrieval", "salad", "--salad-weights", str(checkpoint), "--quiet",
-         "--no-save-keyframe-points"],
+         "--keyframes", "none"],
         capture_output=True, text=True, timeout=1800)
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())

@@ -20,6 +20,7 @@ from sl4slam.config import SLAMConfig
 from sl4slam.errors import MissingWeightsError, UserError
 from sl4slam.io import read_tum_trajectory
 from sl4slam.result.outputs import read_ply
+from sl4slam.result.reading import load_result
 from sl4slam.runner import format_length, prepare_output, run_slam
 from sl4slam.synthetic import write_synthetic_sequence
 
@@ -95,15 +96,15 @@ def test_outputs_follow_the_run_and_map_respects_its_cap(world: Path, tmp_path: 
     summary = run_slam(world, tmp_path / "out", config, progress=False, on_submap=watch)
     assert seen and all(status == "running" for status, _ in seen)
     assert [count for _, count in seen] == list(range(2, 2 + len(seen)))
-    assert summary["status"] == "complete" and summary["format"]["version"] == 2
+    assert summary["status"] == "complete" and summary["format"]["version"] == 3
     xyz, _ = read_ply(tmp_path / "out" / "map.ply")
     assert len(xyz) == summary["map_points"] == 5000
     stamps, _ = read_tum_trajectory(tmp_path / "out" / "trajectory_gt.txt")
     assert len(stamps) == summary["counts"]["keyframes"]
-    with np.load(next((tmp_path / "out" / "keyframes").glob("*.npz"))) as keyframe:
-        assert keyframe["confidence"].shape == keyframe["mask"].shape and keyframe["colors"].dtype == np.uint8
-        # the mask keeps the top 75 % (exact at the stored, every-second pixels)
-        assert keyframe["confidence"][::2, ::2][keyframe["mask"][::2, ::2]].min() >= 25 - 0.5
+    keyframe = load_result(tmp_path / "out").keyframes[0].load()
+    assert keyframe.confidence.shape == keyframe.mask.shape and keyframe.colors.dtype == np.uint8
+    # the mask keeps the top 75 % (exact at the stored, every-second pixels)
+    assert keyframe.confidence[::2, ::2][keyframe.mask[::2, ::2]].min() >= 25 - 0.5
 
 
 def test_sigint_finishes_the_submap_and_writes_everything(tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 from safetensors.torch import load_file
 
 from sl4slam.config import RetrievalConfig
@@ -35,14 +36,6 @@ TINY_SIZES = dict(embed_dim=64, depth=2, num_heads=2, num_clusters=8, cluster_di
 
 
 @pytest.fixture(scope="module")
-def salad_dir(shared_dir: Path) -> Path:
-    path = shared_dir / "fixtures" / "salad"
-    if not path.is_dir():
-        pytest.skip("SALAD fixtures are absent")
-    return path
-
-
-@pytest.fixture(scope="module")
 def tiny_dir(fixtures_dir: Path) -> Path:
     """The vendored tiny case: weights, the first image of each batch, its reference outputs."""
     return fixtures_dir / "salad_tiny"
@@ -65,12 +58,34 @@ def tiny_io(tiny_dir: Path) -> tuple[dict, dict]:
 
 
 @pytest.fixture(scope="module")
-def full_tiny_io(salad_dir: Path) -> tuple[dict, dict]:
-    """The full tiny case of the reference fixtures (preprocessing examples included)."""
-    return (
-        load_file(str(salad_dir / "tiny" / "inputs.safetensors")),
-        load_file(str(salad_dir / "tiny" / "outputs.safetensors")),
-    )
+def full_tiny_io(fixtures_dir: Path, tiny_dir: Path) -> tuple[dict, dict, torch.Tensor]:
+    """The reference's preprocessing examples, rebuilt bitwise from their vendored form
+    (tests/fixtures/README.md): uint8 images from PNG files, float tensors from lookup tables at
+    those images; of the model inputs, the first image of each batch. Also the table of
+    normalized values (every value of every normalized reference tensor)."""
+    folder = fixtures_dir / "salad_preprocess"
+    tables = load_file(str(folder / "tables.safetensors"))
+    normalize = tables["normalize"]  # (3, 256): ToTensor + Normalize of value v in channel c
+
+    def png(name: str) -> torch.Tensor:
+        return torch.from_numpy(np.array(Image.open(folder / name)))
+
+    def normalized(hwc: torch.Tensor) -> torch.Tensor:  # (B, H, W, 3) or (H, W, 3) uint8 -> (B, 3, H, W)
+        nchw = (hwc if hwc.ndim == 4 else hwc[None]).permute(0, 3, 1, 2).long()
+        return normalize[torch.arange(3)[:, None, None], nchw]
+
+    inputs = load_file(str(tiny_dir / "inputs.safetensors"))
+    inputs["images"] = normalized(inputs["images_uint8"])
+    inputs["images_224"] = normalized(inputs["images_224_uint8"])
+    raw = inputs["preproc.raw_uint8_hwc"] = png("raw_480x400.png")
+    for size in (322, 224):
+        inputs[f"preproc.resized_{size}_uint8_hwc"] = png(f"resized_{size}.png")
+        inputs[f"preproc.normalized_{size}"] = normalized(inputs[f"preproc.resized_{size}_uint8_hwc"])
+    raw_chw = raw.permute(2, 0, 1).long()
+    inputs["preproc.vggt_float01_chw"] = tables["vggt_float01"][raw_chw]
+    inputs["preproc.vggt_topil_uint8_chw"] = tables["vggt_topil"][raw_chw]
+    inputs["preproc.vggt_normalized_224"] = normalized(png("vggt_resized_224.png"))
+    return inputs, {"preproc.descriptor_322": tables["descriptor_322"]}, normalize
 
 
 def write_random_salad_checkpoint(path: Path, seed: int = 0, lightning: bool = False) -> Path:
@@ -92,8 +107,9 @@ def random_images(count: int, seed: int, height: int = 120, width: int = 160) ->
 # ----------------------------------------------------------------------------- DINOv2
 
 
-def test_pos_embed_scale_factor_resize_matches_reference(salad_dir: Path) -> None:
-    data = load_file(str(salad_dir / "pos_embed_interp.safetensors"))
+def test_pos_embed_scale_factor_resize_matches_reference(fixtures_dir: Path) -> None:
+    data = load_file(str(fixtures_dir / "salad_pos_embed_interp.safetensors"))
+    data["interp_518"] = data["pos_embed"]  # the reference returns it unchanged (bitwise; not stored twice)
     vit = DinoVisionTransformer(embed_dim=64, depth=0, num_heads=2, interpolate_offset=0.1)
     assert vit.pos_embed_resize == "scale_factor"
     with torch.no_grad():
@@ -110,13 +126,12 @@ def test_pos_embed_scale_factor_resize_matches_reference(salad_dir: Path) -> Non
     assert (wrong - data["interp_322"]).abs().max() > 0.5
 
 
-def test_pos_embed_antialiased_size_resize_matches_vggt_reference(shared_dir: Path) -> None:
-    folder = shared_dir / "fixtures" / "vggt" / "tiny" / "tiny_a"
-    if not folder.is_dir():
-        pytest.skip("VGGT fixtures are absent")
+def test_pos_embed_antialiased_size_resize_matches_vggt_reference(fixtures_dir: Path) -> None:
+    folder = fixtures_dir / "vggt_tiny_a"  # the vendored cut of VGGT's tiny_a
     state = load_file(str(folder / "state_dict.safetensors"))
     expected = load_file(str(folder / "intermediates.safetensors"))
     prefix = "aggregator.patch_embed."
+    expected["pos_embed_interp_518x518"] = state[prefix + "pos_embed"]  # returned unchanged (bitwise; not stored twice)
     vit = DinoVisionTransformer(
         embed_dim=64, depth=2, num_heads=4, num_register_tokens=4, interpolate_antialias=True, interpolate_offset=0.0
     )
@@ -134,16 +149,18 @@ def test_pos_embed_antialiased_size_resize_matches_vggt_reference(shared_dir: Pa
 # ----------------------------------------------------------------------------- Sinkhorn
 
 
-def test_sinkhorn_matches_reference_cases(salad_dir: Path) -> None:
-    data = load_file(str(salad_dir / "sinkhorn.safetensors"))
-    cases = json.loads((salad_dir / "sinkhorn.json").read_text())
+def test_sinkhorn_matches_reference_cases(fixtures_dir: Path) -> None:
+    data = load_file(str(fixtures_dir / "salad_sinkhorn.safetensors"))
+    cases = json.loads((fixtures_dir / "salad_sinkhorn.json").read_text())
     assert len(cases) == 6
     for name, meta in cases.items():
         log_p = sinkhorn_log_transport(data[f"{name}.scores"], data[f"{name}.dustbin"][0], meta["num_iters"])
         m = meta["m"]
         assert log_p.shape == (meta["B"], m + 1, meta["n"])
         torch.testing.assert_close(log_p, data[f"{name}.log_P"], atol=2e-5, rtol=0)
-        torch.testing.assert_close(log_p[:, :m].exp(), data[f"{name}.P_no_dustbin"], atol=1e-6, rtol=1e-5)
+        # the reference's P without the dust bin is exp of its log P (bitwise where vendored; not stored)
+        reference_p = data[f"{name}.log_P"][:, :m].exp()
+        torch.testing.assert_close(log_p[:, :m].exp(), reference_p, atol=1e-6, rtol=1e-5)
         # every column of P, dust bin included, sums to one after the final column update
         torch.testing.assert_close(log_p.exp().sum(dim=1), torch.ones(meta["B"], meta["n"]), atol=1e-5, rtol=0)
 
@@ -156,12 +173,12 @@ def test_sinkhorn_rejects_fewer_features_than_clusters() -> None:
 # ----------------------------------------------------------------------------- full model layout
 
 
-def test_full_model_state_dict_equals_checkpoint_manifest(salad_dir: Path) -> None:
-    manifest = json.loads((salad_dir / "manifest_full.json").read_text())
+def test_full_model_state_dict_equals_checkpoint_manifest(fixtures_dir: Path) -> None:
+    manifest = json.loads((fixtures_dir / "salad_manifest_full.json").read_text())  # key -> shape, in order
     with torch.device("meta"):
         model = SaladModel()
     state = model.state_dict()
-    expected = [(e["key"], tuple(e["shape"])) for e in manifest["entries"]]
+    expected = [(key, tuple(shape)) for key, shape in manifest["shapes"].items()]
     assert [(k, tuple(v.shape)) for k, v in state.items()] == expected
     assert sum(v.numel() for v in state.values()) == manifest["num_parameters_total"] == 87_991_489
     assert len(list(model.buffers())) == 0
@@ -204,9 +221,12 @@ def test_tiny_model_matches_reference_outputs(tiny_model, tiny_io, tiny_dir, pre
 
 
 def test_preprocessing_matches_reference(tiny_model, full_tiny_io) -> None:
-    inputs, outputs = full_tiny_io
+    inputs, outputs, normalize = full_tiny_io
     assert torch.equal(normalize_uint8_images(inputs["images_uint8"].numpy()), inputs["images"])
     assert torch.equal(normalize_uint8_images(inputs["images_224_uint8"].numpy()), inputs["images_224"])
+    # every value of the reference's normalized images (all of both batches), in every channel
+    every_value = np.repeat(np.arange(256, dtype=np.uint8)[None, None, :, None], 3, axis=3)  # (1, 1, 256, 3)
+    assert torch.equal(normalize_uint8_images(every_value), normalize[None, :, None, :])
     raw = inputs["preproc.raw_uint8_hwc"].numpy()
     for size in (322, 224):
         assert np.array_equal(resize_uint8(raw, size), inputs[f"preproc.resized_{size}_uint8_hwc"].numpy())

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+import lzma
 
 import numpy as np
 import pytest
 import torch
 from PIL import Image
-from safetensors.torch import load_file
+from safetensors.torch import load, load_file
 
 from sl4slam.models.vggt.geometry import closed_form_inverse_se3, unproject_depth_map_to_point_map
 from sl4slam.models.vggt.pose_encoding import (
@@ -23,8 +24,8 @@ IMAGE_HW = (294, 518)
 
 
 @pytest.fixture(scope="module")
-def pose_fixture(shared_dir):
-    return load_file(str(shared_dir / "fixtures/vggt/pose_enc/pose_geometry.safetensors"))
+def pose_fixture(fixtures_dir):
+    return load_file(str(fixtures_dir / "vggt_pose_geometry.safetensors"))
 
 
 def test_pose_encoding_decodes_like_reference(pose_fixture):
@@ -85,10 +86,10 @@ def test_unprojection_matches_reference(pose_fixture):
 
 
 @pytest.fixture(scope="module")
-def preprocess_fixture(shared_dir):
-    folder = shared_dir / "fixtures/vggt/preprocess"
+def preprocess_fixture(fixtures_dir):
+    folder = fixtures_dir / "vggt_preprocess"
     calls = json.loads((folder / "preprocess.json").read_text())
-    outputs = load_file(str(folder / "preprocess_outputs.safetensors"))
+    outputs = load(lzma.decompress((folder / "outputs.safetensors.xz").read_bytes()))  # the reference's file, xz
     images = {p.name: np.asarray(Image.open(p)) for p in folder.glob("*.png")}
     return calls, outputs, images
 
@@ -109,9 +110,9 @@ def test_preprocessing_is_exact(preprocess_fixture, key):
         assert transform.output_hw == tuple(call["shape"][2:])
 
 
-def test_preprocessing_from_paths_and_rgba(shared_dir, preprocess_fixture):
+def test_preprocessing_from_paths_and_rgba(fixtures_dir, preprocess_fixture):
     _, outputs, images = preprocess_fixture
-    path = shared_dir / "fixtures/vggt/preprocess/img_rgba_300x200.png"
+    path = fixtures_dir / "vggt_preprocess/img_rgba_300x200.png"
     assert images["img_rgba_300x200.png"].shape[2] == 4
     batch, _ = preprocess_images([path], mode="pad")
     assert torch.equal(batch, outputs["pad__rgba"].to(torch.float32) / 255)

@@ -149,6 +149,12 @@ def test_memory_plan_names_the_largest_submap_that_fits():
     assert "\n" not in message and f"largest submap that fits is {largest} frames" in message
     assert "--max-memory" in message and "--submap-size" in message
     assert largest_fitting_frames(FULL, bf16, int(0.5 * GIB), 518, 518) == 0  # not even the weights
+    # on a GPU without --max-memory the GPU's own memory is the budget, named as such
+    with pytest.raises(UserError) as error:
+        plan_memory(FULL, bf16, budget, largest + 1, 518, 518, budget_source="the GPU (a small one) has")
+    message = str(error.value)
+    assert "the GPU (a small one) has 4 GiB" in message and f"--submap-size {max(1, largest - 2)}" in message
+    assert "raise --max-memory" not in message
 
 
 @pytest.mark.parametrize(

@@ -15,7 +15,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from browser import chromium_path, drawn_fraction, first_drawn, interrupt, launch, same_region
+from browser import HANG_S, chromium_path, drawn_fraction, first_drawn, first_drawn_text, interrupt, launch
 from result_folders import write_known_result
 from sl4slam.backend import WorldEstimate
 from sl4slam.errors import UserError
@@ -123,7 +123,8 @@ def test_default_point_size_follows_the_map_spacing() -> None:
     assert auto_point_size(None, fallback=0.5) == 0.5 and auto_point_size(0.0, fallback=0.5) == 0.5
     # scale-free: the same map in millimetres gets 1000x larger points
     grid = _plane(0.01, 100)
-    assert auto_point_size(median_spacing(grid * 1000), 1.0) == pytest.approx(1000 * auto_point_size(median_spacing(grid), 1.0))
+    in_mm = auto_point_size(median_spacing(grid * 1000), 1.0)
+    assert in_mm == pytest.approx(1000 * auto_point_size(median_spacing(grid), 1.0))
 
 
 def test_frustums_are_spread_along_the_trajectory() -> None:
@@ -296,7 +297,7 @@ def test_live_viewer_keeps_the_map_within_the_point_budget() -> None:
     try:
         for s in range(6):
             viewer.on_submap(_pipeline([k for k in keyframes if k.submap_id <= s], {i: estimates[i] for i in range(s + 1)}), s)
-            assert viewer.wait(30)
+            assert viewer.wait(HANG_S)  # drawn (the bound only catches a hang)
             assert fake.state.total_points() <= budget
         assert fake.state.fraction < 1.0 and viewer.updates >= 1
         full = sum(c.full_count for c in fake.state.clouds.values())
@@ -311,7 +312,7 @@ def test_missing_viser_is_one_line(tmp_path: Path) -> None:
     write_known_result(tmp_path / "r")
     code = ("import sys; sys.modules['viser'] = None\nfrom sl4slam.cli import main\n"
             f"sys.exit(main(['view', {str(tmp_path / 'r')!r}]))")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=HANG_S)
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 2 and len(lines) == 1 and 'pip install "sl4slam[viewer]"' in lines[0], proc.stderr
 
@@ -373,26 +374,32 @@ screenshot that shows it, at least (measured: 0.30 before the defaults followed 
 
 def test_view_in_a_real_browser(tmp_path: Path) -> None:
     """`sl4slam view` in headless Chromium, default settings, no interaction: the first screenshot
-    that shows anything on the canvas already shows the map and a complete control panel; Ctrl-C
-    stops the viewer (exit 0).
+    that shows anything on the canvas shows the map, the control panel holds every control, the
+    counts and the run summary from the first frame that draws the map, and Ctrl-C stops the
+    viewer (exit 0).
 
     The result is a room with a desk as a run writes it: 16 keyframes at 96x72 of dense surface
     points, 88,381 shown (``write_known_result(scene="room")``). Fraction of the canvas drawn in that
     first screenshot (software WebGL, 1000x700 page, :func:`browser.drawn_fraction`): 0.30 with the
     previous defaults (point size the trajectory's extent / 500: the map a dotted haze; 16 frustums
-    of 4 % of that extent; viser's environment map fading the canvas in from 5 % opacity, which
-    under load made the first screenshots fainter still), 0.48 with the current ones (point size
-    from the map's point spacing, frustums of 2.5 % of the map's radius, no environment map). The
+    of 4 % of that extent; viser's environment map fading the canvas in from 5 % opacity: under
+    load the first screenshot caught the fade, 0.14), 0.48 with the current ones (point size from
+    the map's point spacing, frustums of 2.5 % of the map's radius, no environment map). The
     threshold :data:`MAP_VISIBLE` = 0.40 lies between.
 
-    The panel is complete when its region is the same in that first screenshot as in one taken
-    after the page has everything (every label, the counts and the summary in the DOM).
+    The panel is checked on the page's text read in the same JavaScript task as the canvas' pixels
+    (:func:`browser.first_drawn_text`), at the first moment the canvas shows something: a
+    screenshot and a separate read of the page are two moments, and under load viser's panel may
+    still be sliding open in a screenshot whose page already holds everything.
     """
     pytest.importorskip("viser", reason="the viewer extra is not installed")
     sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
     truth = write_known_result(tmp_path / "room", count=16, width=96, height=72, submap_size=4, version=2,
                                confidence=True, scene="room", loops=[{"submaps": [0, 2], "frame": 0}])
     points = sum(int(mask.sum()) for mask in truth["masks"].values())
+    expected = ("Point size", "Min confidence %", "Colour", "Cameras", "All frustums", "Trajectory", "Loop edges",
+                "Ground truth", "Follow camera", "Keyframe", f"points: {points:,} shown of {points:,}",
+                "16 keyframes, 4 submaps", "ATE RMSE")
     port = _free_port()
     proc = subprocess.Popen([sys.executable, "-m", "sl4slam.cli", "view", str(tmp_path / "room"), "--port", str(port)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ})
@@ -404,27 +411,17 @@ def test_view_in_a_real_browser(tmp_path: Path) -> None:
             browser = _browser(playwright, tmp_path / "profile")
             page = browser.new_page()
             page.goto(url)
+            _, text = first_drawn_text(page)
             first = first_drawn(page)
             (tmp_path / "first.png").write_bytes(first)
-            fraction = drawn_fraction(first)
-            # the page with everything: each control, the counts and the run summary
-            for label in ("Point size", "Min confidence %", "Colour", "Cameras", "All frustums", "Follow camera",
-                          "Keyframe", "Loop edges", "Ground truth"):
-                page.get_by_text(label, exact=True).first.wait_for()
-            page.get_by_text(f"points: {points:,} shown of {points:,}", exact=False).first.wait_for()
             page.get_by_text("ATE RMSE", exact=False).first.wait_for()
-            complete = page.screenshot()
-            (tmp_path / "complete.png").write_bytes(complete)
-            top = page.get_by_text("sl4slam: room", exact=True).bounding_box()
-            bottom = page.get_by_text("source: known", exact=False).bounding_box()
-            panel = {"x": top["x"], "y": top["y"], "width": page.viewport_size["width"] - 30 - top["x"],
-                     "height": bottom["y"] + bottom["height"] - top["y"]}
-            assert panel["height"] > 300  # title to summary: the whole panel
-            same = same_region(first, complete, panel)
+            settled = page.screenshot()
             browser.close()
+        missing = [item for item in expected if item not in text]
+        assert not missing, f"not in the page when the canvas first showed the map: {missing}"
+        fraction = drawn_fraction(first)
         assert fraction > MAP_VISIBLE, f"the first view shows {fraction:.3f} of the canvas drawn (see first.png)"
-        assert same > 0.99, f"the panel was not complete in the first view ({same:.3f} of it as at the end)"
-        assert drawn_fraction(complete) > MAP_VISIBLE
+        assert drawn_fraction(settled) > MAP_VISIBLE
     finally:
         out, err = interrupt(proc)
     assert proc.returncode == 0 and "viewer stopped" in out, err
@@ -436,7 +433,6 @@ def test_live_viewer_follows_a_real_run(tmp_path: Path) -> None:
     import io
 
     from result_folders import small_world_config
-    from sl4slam.frontend import make_frontend
     from sl4slam.io import open_source
     from sl4slam.pipeline import SLAMPipeline
     from sl4slam.synthetic import write_synthetic_sequence
@@ -451,6 +447,7 @@ def test_live_viewer_follows_a_real_run(tmp_path: Path) -> None:
                                 on_submap=lambda p, s: (calls.append(s), viewer.on_submap(p, s)))
         result = pipeline.run(open_source(str(world)), progress=False)
         viewer.finish(result, {"counts": result.stats, "ate": {"rmse": 0.01, "poses": len(result.keyframes)}})
+        assert viewer.wait(HANG_S)  # the final state is drawn (the bound only catches a hang)
         state = viewer.state
         assert calls == list(range(result.stats["submaps"])) and viewer.updates >= 2 and viewer.error is None
         assert sorted(state.clouds) == sorted(result.H_world_submap)
@@ -489,13 +486,12 @@ def test_run_with_view_in_a_real_browser(tmp_path: Path) -> None:
             browser = _browser(playwright, tmp_path / "profile")
             page = browser.new_page()
             page.goto(url)
-            page.wait_for_selector("canvas", timeout=60000)
             assert _wait_until_drawn(page) > 0.02
-            assert "ATE RMSE" in page.content()
+            page.get_by_text("ATE RMSE", exact=False).first.wait_for()
             browser.close()
     finally:
-        interrupt(proc)
-    assert proc.returncode == 0, proc.stderr.read()
+        _, err = interrupt(proc)
+    assert proc.returncode == 0, err
 
 
 def test_a_run_without_keyframe_files_shows_its_trajectory(tmp_path: Path) -> None:
@@ -509,6 +505,6 @@ def test_a_run_without_keyframe_files_shows_its_trajectory(tmp_path: Path) -> No
     viewer = view_result(tmp_path / "r", ViewerSettings(port=_free_port()), block=False, stream=out)
     try:
         assert len(viewer.state.T_world_cam) == 5 and viewer.state.total_points() == 0
-        assert "--save-keyframe-points" in viewer.gui_summary.content
+        assert "--keyframes compact" in viewer.gui_summary.content
     finally:
         viewer.close()

@@ -229,7 +229,7 @@ def _add_eval_arguments(parser: argparse.ArgumentParser, grid_required: bool) ->
     parser.add_argument("--replay", metavar="DIR", help="frontend_cache/ folder of an earlier evaluation to replay from")
     parser.add_argument("--no-dense", action="store_true", help="7-Scenes: skip the dense metrics (no Open3D needed)")
     parser.add_argument("--keep-keyframe-points", action="store_true",
-                        help="keep each run's keyframes/ (per-keyframe dense points; GBs for a full evaluation)")
+                        help="keep each run's keyframes/ (per-keyframe dense data, about 0.2-0.3 MB each in the compact layout)")
     parser.add_argument("--config", help="TOML or JSON file of run settings (flags override it)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     add_config_flags(parser)

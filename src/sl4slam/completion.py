@@ -83,18 +83,35 @@ def bending(perspective: np.ndarray, centre_b: np.ndarray, points_b: np.ndarray)
         points_b: ``(N, 3)`` the shared frame's points in submap b (finite rows), whose centroid keeps
             its depth and whose median distance from the centre is the unit of ``p``.
     """
-    centre_b = np.asarray(centre_b, dtype=np.float64)
-    offsets = np.asarray(points_b, dtype=np.float64) - centre_b
-    depth = float(np.median(np.linalg.norm(offsets, axis=1)))
-    T = np.eye(4)
-    T[:3, :3] /= depth
-    T[:3, 3] = -centre_b / depth
-    centroid = offsets.mean(axis=0) / depth
-    p = np.asarray(perspective, dtype=np.float64)
-    bend = np.eye(4)
-    bend[3, :3] = p
-    bend[3, 3] = 1.0 - p @ centroid
-    return np.linalg.inv(T) @ bend @ T
+    return BendingFrame.of(centre_b, points_b).bending(perspective)
+
+
+@dataclass(frozen=True)
+class BendingFrame:
+    """What :func:`bending` takes from the shared frame's points, computed once for the many
+    bendings a fit evaluates: the normalization ``T`` (centre at the origin, median distance 1)
+    ``(4, 4)`` and the points' centroid ``(3,)`` in that frame."""
+
+    T: np.ndarray
+    centroid: np.ndarray
+
+    @classmethod
+    def of(cls, centre_b: np.ndarray, points_b: np.ndarray) -> "BendingFrame":
+        centre_b = np.asarray(centre_b, dtype=np.float64)
+        offsets = np.asarray(points_b, dtype=np.float64) - centre_b
+        depth = float(np.median(np.linalg.norm(offsets, axis=1)))
+        T = np.eye(4)
+        T[:3, :3] /= depth
+        T[:3, 3] = -centre_b / depth
+        return cls(T, offsets.mean(axis=0) / depth)
+
+    def bending(self, perspective: np.ndarray) -> np.ndarray:
+        """``G`` ``(4, 4)`` for the perspective row ``perspective`` ``(3,)``."""
+        p = np.asarray(perspective, dtype=np.float64)
+        bend = np.eye(4)
+        bend[3, :3] = p
+        bend[3, 3] = 1.0 - p @ self.centroid
+        return np.linalg.inv(self.T) @ bend @ self.T
 
 
 def _camera_residuals(P: np.ndarray, principal_points: np.ndarray, focal: float, focal_weight: float) -> np.ndarray:
@@ -145,9 +162,10 @@ def complete_camera_link(
     points_b = points_b[np.isfinite(points_b).all(axis=1)]
     into_metric = np.linalg.inv(np.asarray(H_metric_a, dtype=np.float64) @ H_a_b)
     basis = np.eye(3) if free is None else np.asarray(free, dtype=np.float64).reshape(-1, 3)
+    frame = BendingFrame.of(centre_b, points_b) if len(points_b) else None
 
     def residuals(u: np.ndarray) -> np.ndarray:
-        P = cameras_b @ np.linalg.inv(bending(u @ basis, centre_b, points_b)) @ into_metric
+        P = cameras_b @ np.linalg.inv(frame.bending(u @ basis)) @ into_metric
         return _camera_residuals(P, pp, focal, config.focal_weight).ravel()
 
     def kept(reason: str, before: float, uncertainty: float = float("inf")) -> LinkCompletion:
@@ -177,7 +195,7 @@ def complete_camera_link(
     if not after <= config.max_residual_ratio * before:
         return kept(f"no clear improvement (constraint residual {before:.2g} -> {after:.2g})", before, uncertainty)
     p = solution.x @ basis
-    H = normalize_sl4(H_a_b @ bending(p, centre_b, points_b))
+    H = normalize_sl4(H_a_b @ frame.bending(p))
     return LinkCompletion(H, True, "completed", p, before, after, uncertainty)
 
 

@@ -920,6 +920,7 @@ class OutputConfig(Section):
 
     section: ClassVar[str] = "output"
     flag_names: ClassVar[dict[str, str]] = {"seed": "--map-seed"}
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {"keyframes": ("compact", "full", "none")}
     advanced: ClassVar[frozenset[str]] = frozenset({"checkpoint_seconds", "progress_every", "seed"})
 
     voxel_size: float = 0.0
@@ -928,8 +929,15 @@ class OutputConfig(Section):
     """Cap on points written to ``map.ply`` (subsampled at random, seeded by ``seed``)."""
     seed: int = 0
     """Seed of the map's subsampling to ``max_map_points``."""
-    save_keyframe_points: bool = True
-    """Write per-keyframe world points and masks for dense evaluation and exports."""
+    keyframes: str = "compact"
+    """What ``keyframes/NNNNNN.npz`` holds per keyframe (the exports, the viewer's map, dense
+    evaluation and ``--all-frames`` from a folder read it). "compact": the run's own float16 depth
+    with the keyframe's camera and projective map, mask, confidence percentile and JPEG colours,
+    deflated: the same world points as "full" (0 difference measured), 0.22 MB per keyframe at
+    518x392 on the TUM excerpt, 17x smaller (13.5x on the synthetic world;
+    ``benchmarks/results/keyframe_format.md``). "full": float32 world points,
+    uint8 colours, float16 confidence, uncompressed (3.66 MB at 518x392), for tools that read the
+    raw points. "none": no ``keyframes/`` (trajectory and ``map.ply`` only)."""
     cache_frontend: bool = False
     """Store the frontend's outputs so the backend can be re-run without the model."""
     checkpoint_seconds: float = 10.0
@@ -966,7 +974,7 @@ class UpgradeConfig(Section):
         "loss": ("cauchy", "soft_l1", "huber", "arctan", "linear"),
     }
     advanced: ClassVar[frozenset[str]] = frozenset({
-        "focal_weight", "loss", "loss_scale", "outlier_factor", "min_inlier_fraction", "min_keyframes",
+        "focal_weight", "loss", "loss_scale", "outlier_factor", "min_inlier_fraction", "min_keyframes", "running_keyframes",
         "min_condition", "max_uncertainty", "max_iterations", "max_residual_ratio", "metric_residual", "complete_links",
         "max_residual_after", "inconsistent_ratio"})
 
@@ -1043,6 +1051,13 @@ class UpgradeConfig(Section):
     frame for the upgrade. Our measurement (synthetic world, perspective 0.1, submap graph, 5 seeds):
     upgraded ATE 0.002-0.016 m with it, 0.015-0.17 m without; links replaced by the exact ones
     gave 0.001-0.005 m (benchmarks/results/upgrade_pipeline.md)."""
+    running_keyframes: int = 32
+    """The running upgrade that completes planar links estimates the map's metric frame from at most
+    this many keyframes of the segment (half of them the newest, where the link is, the other half
+    spread evenly over the rest), so its cost stays flat as the map grows: from every keyframe it
+    took 1.7 s per submap at 1600 keyframes on this CPU (benchmarks/bench_pipeline.py). The upgrade's
+    8 unknowns need 3 cameras (H&Z 19.3); 32 give 160 constraints. The final upgrade uses every
+    keyframe."""
     metric_residual: float = 0.002
     """Never make it worse: cameras whose constraint residual (skew, aspect and principal-point
     offset over the focal length) is already below this are metric to within the upgrade's own
@@ -1058,6 +1073,8 @@ class UpgradeConfig(Section):
         self._require("outlier_factor", self.outlier_factor >= 1, ">= 1")
         self._require("min_inlier_fraction", 0 < self.min_inlier_fraction <= 1, "in (0, 1]")
         self._require("min_keyframes", self.min_keyframes >= 3, "at least 3 (H&Z 19.3)")
+        self._require("running_keyframes", self.running_keyframes >= self.min_keyframes,
+                      f"at least --upgrade-min-keyframes ({self.min_keyframes})")
         self._require("min_condition", 0 <= self.min_condition < 1, "in [0, 1)")
         self._require("max_uncertainty", self.max_uncertainty > 0, "> 0")
         self._require("max_iterations", self.max_iterations >= 1, "at least 1")
@@ -1072,7 +1089,7 @@ class SLAMConfig(Section):
 
     flag_names: ClassVar[dict[str, str]] = {"frontend": "--frontend"}
     flag_aliases: ClassVar[dict[str, tuple[str, ...]]] = {"frontend": ("--model",)}
-    advanced: ClassVar[frozenset[str]] = frozenset({"max_frontend_failures"})
+    advanced: ClassVar[frozenset[str]] = frozenset({"max_frontend_failures", "overlap"})
 
     frontend: str = "vggt"
     """The frontend that reconstructs each submap: a model ("vggt", "pi3", "pi3x", "da3-small",
@@ -1086,6 +1103,11 @@ class SLAMConfig(Section):
     """A submap on which the frontend fails (an exception, or non-finite output) is skipped; this
     many failures in a row end the run (with its outputs written): the frontend is broken, not the
     frames."""
+    overlap: bool = True
+    """Run the model on the next submap while the graph, the loop checks and the outputs work on
+    this one (one worker, at most one submap waiting; ``sl4slam.schedule``). The results are the same
+    as one submap after the other, byte for byte; it needs ``--tau-interval`` >= 1 (the default, 2),
+    so that a loop frame never comes from the submap still being worked on."""
     source: SourceConfig = field(default_factory=SourceConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     submap: SubmapConfig = field(default_factory=SubmapConfig)
@@ -1154,18 +1176,26 @@ _MOVED = {
     **{("vggt", key): ("model", key) for key in ("weights", "dtype", "preprocess_mode", "max_memory_gb",
                                                  "head_chunk_frames", "match_layer")},
     **{("sim", f"false_loop_{key}"): ("false_loops", key) for key in ("rate", "min_distance", "min_angle", "max_overlap")},
+    ("output", "save_keyframe_points"): ("output", "keyframes"),
 }
+_MOVED_VALUES = {("output", "save_keyframe_points"): {True: "compact", False: "none"}}
+"""Moved settings whose values changed too: (old table, old key) -> {old value: new value}."""
 
 
 def _move_renamed(values: dict) -> dict:
     """``values`` with settings of earlier releases (``[vggt] weights``, top-level ``stride``,
-    ``[sim] false_loop_rate`` ...) under their current keys; the current key wins if both are given."""
+    ``[sim] false_loop_rate`` ...) under their current keys, with their values translated where
+    those changed too (``[output] save_keyframe_points = true / false`` is ``keyframes = "compact" /
+    "none"``); the current key wins if both are given."""
     moved = {key: dict(value) if isinstance(value, dict) else value for key, value in values.items()}
     for (old_table, old_key), (new_table, new_key) in _MOVED.items():
         old = moved if not old_table else moved.get(old_table)
         if not isinstance(old, dict) or old_key not in old:
             continue
         value = old.pop(old_key)
+        mapping = _MOVED_VALUES.get((old_table, old_key))
+        if mapping is not None and isinstance(value, bool):
+            value = mapping[value]
         new = moved if not new_table else moved.setdefault(new_table, {})
         if isinstance(new, dict):
             new.setdefault(new_key, value)

@@ -38,7 +38,7 @@ def demo_config(backend: str, perspective: float, retrieval: str = "orb") -> SLA
     config.sim.perspective = perspective
     # Submap 0 defines the world frame; leaving it undistorted shows the error each backend adds.
     config.sim.distort_first_submap = False
-    config.output.save_keyframe_points = False
+    config.output.keyframes = "none"
     return config
 
 

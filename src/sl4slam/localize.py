@@ -17,9 +17,11 @@ Method (per non-keyframe):
 
 A frame is reported as failed (listed with its reason, never invented) when neither keyframe gives
 ``min_inliers`` PnP inliers making up ``min_inlier_ratio`` of the tracks. Keyframes keep their own
-poses. From a result folder (no graph nodes saved), the keyframes' world points, decomposed ``K``
-and pose stand in for the submap frame (``H = I``): exact when the world is Euclidean, first-order
-otherwise.
+poses. From a result folder written with the compact keyframe layout (the default), each keyframe
+file holds its depth, camera and projective map in its submap frame, so the localization is the
+run's own. From a full-layout folder (no graph nodes saved), the keyframes' world points,
+decomposed ``K`` and pose stand in for the submap frame (``H = I``): exact when the world is
+Euclidean, first-order otherwise.
 
 Frames are resampled onto the keyframes' grid (the grid ``K`` refers to) by ``to_grid``: the
 frontend's own ``grid_colors`` (VGGT's preprocessing; nothing for the simulator).
@@ -139,10 +141,18 @@ def views_from_pipeline(result) -> list[KeyframeView]:
 
 
 def views_from_result(result) -> list[KeyframeView]:
-    """Keyframe views from a result folder (world frame, ``H = I``; see the module docstring)."""
+    """Keyframe views from a result folder: in each keyframe's submap frame when its file is
+    compact (exact, as :func:`views_from_pipeline`), else in the world frame with ``H = I`` (see
+    the module docstring)."""
     views = []
     for record in result.require_keyframes("all-frame localization"):
         data = record.load()
+        if data.depth is not None:  # compact: the keyframe's own submap frame
+            views.append(KeyframeView(frame_index=record.frame_index, timestamp=record.timestamp, image=data.colors,
+                                      mask=data.mask, K=data.K_local, T_cam_local=to_4x4(data.T_cam_local),
+                                      H_world_local=data.H_world_local, T_world_cam=record.T_world_cam,
+                                      points=lambda record=record: record.load().points_local()))
+            continue
         views.append(KeyframeView(frame_index=record.frame_index, timestamp=record.timestamp, image=data.colors,
                                   mask=data.mask, K=record.K, T_cam_local=se3_inverse(record.T_world_cam),
                                   H_world_local=np.eye(4), T_world_cam=record.T_world_cam,

@@ -103,7 +103,8 @@ class MetricFrame:
         """The metric frame of the map so far in ``submap_id``'s segment (its keyframes under iSAM2's
         current estimate)."""
         world = self.backend.world_estimate()
-        members = self.segment_members(world, keyframes).get(self.backend.segment_of(submap_id), [])
+        members = running_members(self.segment_members(world, keyframes).get(self.backend.segment_of(submap_id), []),
+                                  self.config.running_keyframes)
         if len(members) < self.config.min_keyframes:
             return RunningFrame(None, problem=f"too few keyframes for a running upgrade ({len(members)})")
         try:
@@ -158,3 +159,15 @@ class MetricFrame:
         return estimate_metric_upgrade(world_cameras(members, world.H_world_submap, world.H_world_keyframe),
                                        np.stack([k.principal_point for k in members]), self.config,
                                        image_sizes=np.array([k.shape[::-1] for k in members]))
+
+
+def running_members(members: Sequence[StoredKeyframe], count: int) -> list[StoredKeyframe]:
+    """At most ``count`` of ``members`` (in time order): the newest half of them, where the new link
+    is, and the rest spread evenly over the older keyframes (``UpgradeConfig.running_keyframes``)."""
+    members = list(members)
+    if len(members) <= count:
+        return members
+    newest = count - count // 2
+    older = members[:-newest]
+    picks = np.unique(np.linspace(0, len(older) - 1, count - newest).round().astype(int))
+    return [older[i] for i in picks] + members[-newest:]

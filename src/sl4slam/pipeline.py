@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -72,6 +72,9 @@ class SubmapInput:
         first_new: slot of the first new keyframe (0 or 1).
         num_new: number of new keyframes.
         loops: the retrieved candidates whose loop frame follows the new keyframes, in order.
+        unreadable: candidates whose loop frame could not be read again, with the reason (rejected
+            when the submap is accepted, so that the edges keep their order however submaps overlap).
+        seconds: wall time of its stages.
     """
 
     submap_id: int
@@ -79,6 +82,13 @@ class SubmapInput:
     first_new: int
     num_new: int
     loops: list[LoopCandidate]
+    unreadable: list[tuple[LoopCandidate, str]] = field(default_factory=list)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def shared(self) -> Frame | None:
+        """The frame shared with the previous submap (``None`` for a first submap)."""
+        return self.frames[0] if self.first_new else None
 
     @property
     def new_slots(self) -> range:
@@ -112,6 +122,23 @@ class DenseSubmap:
     mask: np.ndarray
     levels: np.ndarray
     views: dict[int, FrameView]
+
+
+@dataclass
+class FrontendOutcome:
+    """What the frontend made of one submap: its prediction, or why it failed.
+
+    Attributes:
+        prediction: the prediction (``None`` when it failed).
+        problem: why it cannot be used (an exception, wrong frame count, non-finite values).
+        error: a ``UserError`` it raised (a problem of the settings: it ends the run).
+        seconds: wall time of the forward.
+    """
+
+    prediction: SubmapPrediction | None
+    problem: str | None = None
+    error: UserError | None = None
+    seconds: float = 0.0
 
 
 def source_problem(source: FrameSource, capabilities: FrontendCapabilities, frontend_name: str) -> str | None:
@@ -169,7 +196,8 @@ class SLAMPipeline:
         self.timer = StageTimer()
         self.submap_seconds: list[dict[str, float]] = []
         self.submap_loops: list[int] = []  # loop factors added with each submap
-        self.num_submaps = 0  # submap ids handed out (failed submaps included)
+        self.num_submaps = 0  # submaps done: accepted and worked on, or failed
+        self._next_submap_id = 0  # submap ids handed out (one may be in the model)
         self.num_frames = 0
         self.dropped: dict[str, int] = {"no ground truth": 0, "frontend failed": 0, "graph failed": 0}
         self.frontend_failures: list[dict] = []
@@ -177,9 +205,12 @@ class SLAMPipeline:
         self.stop_requested = False
         self._failures_in_a_row = 0
         self._gt: dict[int, np.ndarray] = {}
-        self._shared: Frame | None = None  # the next submap's shared frame: the last new keyframe stored
+        self._shared: Frame | None = None  # the next submap's shared frame: the last keyframe of the last accepted submap
+        self._last_stored: Frame | None = None  # the last keyframe the graph holds
         self._shared_view: FrameView | None = None  # ... at full precision, as its submap reconstructed it
         self._source: FrameSource | None = None
+        self._frames_read = 0
+        self._reporter = Progress(None, enabled=False)  # consume() makes the run's own
         self.colors: SourceColors | None = None  # the keyframes' colours, re-read from the source
 
     # ------------------------------------------------------------------ driving
@@ -190,35 +221,42 @@ class SLAMPipeline:
 
     def consume(self, source: FrameSource, progress: bool = True) -> None:
         """Feed the frames of ``source`` through keyframe selection and submaps (no final result).
-        The source applies ``[source]`` stride and max_frames (``sl4slam.io.open_source``).
+        The source applies ``[source]`` stride and max_frames (``sl4slam.io.open_source``); the
+        submaps are scheduled by ``sl4slam.schedule`` (the next submap's frontend overlapping this
+        one's graph work when ``overlap`` is on, with the same results).
 
         Raises ``UserError`` for a source the frontend cannot use, and :class:`FrontendFailedError`
         when the frontend keeps failing (what was processed stays in the pipeline).
         """
+        from .schedule import make_scheduler
+
         problem = source_problem(source, self.frontend.capabilities, self.frontend.name)
         if problem:
             raise UserError(problem)
         self.colors = SourceColors(source, self.frontend)
         self._source = source
         pending: list[Frame] = []
-        reporter = Progress(len(source), enabled=progress, every=self.config.output.progress_every, per_submap=True)
+        self._reporter = Progress(len(source), enabled=progress, every=self.config.output.progress_every, per_submap=True)
+        scheduler = make_scheduler(self, overlap=self.resolved.overlap)
         try:
-            for count, frame in enumerate(source):
+            for frame in source:
                 if self.stop_requested:
                     break
+                self._frames_read += 1
                 if self._select(frame):
                     pending.append(frame)
-                full = len(pending) == self.config.submap.size
-                if full:
-                    self.process_submap(pending)
+                if len(pending) == self.config.submap.size:
+                    scheduler.submit(pending)
                     pending = []
-                reporter.frame(keyframes=len(self.keyframes) + len(pending), submaps=self.num_submaps, loops=self.num_loops)
-                if full:
-                    reporter.submap(count + 1, keyframes=len(self.keyframes), submaps=self.num_submaps, loops=self.num_loops)
+                scheduler.poll()
+                self._reporter.frame(self._frames_read, keyframes=len(self.keyframes) + len(pending),
+                                     submaps=self.num_submaps, loops=self.num_loops)
             if pending and not self.stop_requested:
-                self.process_submap(pending)
+                scheduler.submit(pending)
+            scheduler.drain()
         finally:
-            reporter.close()
+            scheduler.close()
+            self._reporter.close()
         if len(self.keyframes) < 2 and not self.stop_requested:
             raise UserError(
                 f"{source.name}: only {len(self.keyframes)} keyframe(s) selected from {self.num_frames} frames; "
@@ -244,74 +282,109 @@ class SLAMPipeline:
 
     # ------------------------------------------------------------------ one submap
     def process_submap(self, new_frames: Sequence[Frame]) -> None:
-        """Reconstruct, align and optimize one submap of new keyframes."""
-        timer = StageTimer()
-        described = self.retrieval.describe_seconds if self.retrieval is not None else 0.0
-        with timer("retrieval"):
-            work = self.assemble(new_frames)
-        with timer("frontend"):
-            prediction = self.reconstruct(work)
+        """Reconstruct, align and optimize one submap of new keyframes (the steps in order; the
+        scheduler runs the same steps with the frontend of the next submap overlapping)."""
+        work = self.assemble(new_frames)
+        prediction = self.accept(work, self.run_frontend(work))
         if prediction is not None:
-            with timer("points"):
-                dense = self.dense_submap(work, prediction)
-            with timer("alignment"):
-                odometry = self.align_odometry(work, dense)
-            with timer("backend"):
-                added = self.add_to_graph(work, dense, odometry)
-            if added:
-                with timer("loops"):
-                    self.close_loops(work, dense)
-                with timer("store"):
-                    self.store(work, dense)
-        # descriptor extraction (a model, like the frontend) is reported apart from the search
-        seconds = dict(timer.seconds)
-        seconds["retrieval_describe"] = (self.retrieval.describe_seconds if self.retrieval is not None else 0.0) - described
-        seconds["retrieval"] -= seconds["retrieval_describe"]
-        self._account(work, seconds)
+            self.finish(work, prediction)
 
     def assemble(self, new_frames: Sequence[Frame]) -> SubmapInput:
         """The submap's frames: the shared frame, the new keyframes, and the loop frames that
-        retrieval proposes (a loop frame that cannot be re-read is rejected here)."""
-        submap_id = self.num_submaps
-        self.num_submaps += 1
+        retrieval proposes (a loop frame that cannot be re-read is rejected when the submap is
+        accepted). Needs the retrieval to hold every earlier accepted submap."""
+        start = time.perf_counter()
+        described = self.retrieval.describe_seconds if self.retrieval is not None else 0.0
+        submap_id = self._next_submap_id
+        self._next_submap_id += 1
         candidates: list[LoopCandidate] = []
         if self.retrieval is not None and self.config.submap.w_loop > 0:
             proposed = self.retrieval.query(list(new_frames), submap_id, self.config.submap.w_loop)
             candidates = [c for c in proposed[: self.config.submap.w_loop] if c.match_frame in self._by_frame]
         shared = [self._shared] if self._shared is not None else []
-        frames, loops = shared + list(new_frames), []
+        frames, loops, unreadable = shared + list(new_frames), [], []
         for candidate in candidates:
             try:
                 frames.append(self._source.get(candidate.match_frame))
                 loops.append(candidate)
             except UserError as exc:
-                self._reject_loop(candidate, submap_id, f"the loop frame cannot be read again: {exc}")
-        return SubmapInput(submap_id, frames, len(shared), len(new_frames), loops)
+                unreadable.append((candidate, f"the loop frame cannot be read again: {exc}"))
+        work = SubmapInput(submap_id, frames, len(shared), len(new_frames), loops, unreadable)
+        self._time_retrieval(work, start, described)
+        return work
 
-    def reconstruct(self, work: SubmapInput) -> SubmapPrediction | None:
-        """The frontend's prediction, or ``None`` when it fails on this submap (see the module doc)."""
+    def reframe(self, work: SubmapInput) -> SubmapInput:
+        """``work`` with the current shared frame (after the submap before it was dropped): the same
+        new keyframes and loop frames, so that the retrieval is not asked again."""
+        shared = [self._shared] if self._shared is not None else []
+        return SubmapInput(work.submap_id, shared + work.frames[work.first_new:], len(shared), work.num_new,
+                           work.loops, work.unreadable, dict(work.seconds))
+
+    def run_frontend(self, work: SubmapInput) -> FrontendOutcome:
+        """The frontend's prediction of ``work`` (touches no pipeline state: it may run in a worker)."""
         pairs = self._match_pairs(work)
+        start = time.perf_counter()
         try:
             # only frontends asked for attention scores need to know the keyword
             prediction = self.frontend.reconstruct(work.frames, work.submap_id, **({"match_pairs": pairs} if pairs else {}))
-            problem = prediction_problem(prediction, len(work.frames))
-        except (KeyboardInterrupt, SystemExit, UserError):
-            raise  # a problem of the settings (a cache that does not match, a memory budget): its line, at once
+            outcome = FrontendOutcome(prediction, prediction_problem(prediction, len(work.frames)))
+        except UserError as exc:  # a problem of the settings (a cache that does not match, a memory budget)
+            outcome = FrontendOutcome(None, str(exc), error=exc)
         except Exception as exc:  # a failing model must not end the run: the submap is skipped
-            problem = f"{type(exc).__name__}: {exc}"
-        if problem is None:
+            outcome = FrontendOutcome(None, f"{type(exc).__name__}: {exc}")
+        outcome.seconds = time.perf_counter() - start
+        return outcome
+
+    def accept(self, work: SubmapInput, outcome: FrontendOutcome) -> SubmapPrediction | None:
+        """Take the frontend's outcome: the prediction, whose keyframes the retrieval now holds and
+        whose last keyframe the next submap shares; or ``None`` when it failed (see the module doc)."""
+        work.seconds["frontend"] = outcome.seconds
+        for candidate, reason in work.unreadable:
+            self._reject_loop(candidate, work.submap_id, reason)
+        if outcome.error is not None:
+            raise outcome.error  # its line, at once
+        if outcome.problem is None:
             self._failures_in_a_row = 0
-            return prediction
+            self._shared = work.frames[work.last_slot]
+            start = time.perf_counter()
+            described = self.retrieval.describe_seconds if self.retrieval is not None else 0.0
+            if self.retrieval is not None:
+                self.retrieval.add(work.frames[work.first_new:work.last_slot + 1], work.submap_id)
+            self._time_retrieval(work, start, described)
+            return outcome.prediction
         self._failures_in_a_row += 1
         self._drop(work, "frontend failed")
-        self.frontend_failures.append({"submap": work.submap_id, "reason": problem,
+        self.frontend_failures.append({"submap": work.submap_id, "reason": outcome.problem,
                                        "keyframes": [f.index for f in work.frames[work.first_new:work.last_slot + 1]]})
-        log.warning("submap %d: the frontend failed (%s); its %d keyframes are skipped", work.submap_id, problem, work.num_new)
+        log.warning("submap %d: the frontend failed (%s); its %d keyframes are skipped", work.submap_id, outcome.problem,
+                    work.num_new)
+        self._account(work)
         if self._failures_in_a_row >= self.config.max_frontend_failures:
             raise FrontendFailedError(
-                f"the frontend failed on {self._failures_in_a_row} submaps in a row (last: {problem}); "
+                f"the frontend failed on {self._failures_in_a_row} submaps in a row (last: {outcome.problem}); "
                 "check the model weights and the input frames")
         return None
+
+    def finish(self, work: SubmapInput, prediction: SubmapPrediction) -> bool:
+        """The graph work of an accepted submap: points, odometry, graph, loops, store. ``False`` when
+        the graph could not take it (it is dropped, and the next submap shares the frame before it)."""
+        timer = StageTimer()
+        with timer("points"):
+            dense = self.dense_submap(work, prediction)
+        with timer("alignment"):
+            odometry = self.align_odometry(work, dense)
+        with timer("backend"):
+            added = self.add_to_graph(work, dense, odometry)
+        if added:
+            with timer("loops"):
+                self.close_loops(work, dense)
+            with timer("store"):
+                self.store(work, dense)
+        else:
+            self._shared = self._last_stored  # the next submap shares the last frame the graph holds
+        work.seconds.update(timer.seconds)
+        self._account(work)
+        return added
 
     def dense_submap(self, work: SubmapInput, prediction: SubmapPrediction) -> DenseSubmap:
         """Confidence masks for the submap, and points for the frames that are aligned: the shared
@@ -362,10 +435,10 @@ class SLAMPipeline:
             return True
         relative = np.eye(4)  # where a new segment starts relative to the last node, without a measurement
         if isinstance(odometry, Alignment):
-            previous = self._by_frame[self._shared.index].submap_id
+            previous = self._by_frame[work.shared.index].submap_id
             odometry = self.metric_frame.complete_link(odometry, previous, self._shared_view, dense.views[0],
                                                        dense.prediction, 0, self.keyframes)
-            self.edges.append(EdgeReport.measured("odometry", previous, submap_id, self._shared.index, odometry))
+            self.edges.append(EdgeReport.measured("odometry", previous, submap_id, work.shared.index, odometry))
             if odometry.fallback:
                 log.info("submap %d->%d: %s", previous, submap_id, odometry.fallback)
             relative = self._graph_measurement(odometry.H)
@@ -416,18 +489,16 @@ class SLAMPipeline:
                 log.info("submap %d: loops dropped: %s", work.submap_id, exc)
 
     def store(self, work: SubmapInput, dense: DenseSubmap) -> None:
-        """Keep the new keyframes compactly, the last one as the next submap's shared frame, and
-        hand them to retrieval."""
+        """Keep the new keyframes compactly, the last one's view for aligning the next submap (the
+        retrieval took them when the submap was accepted)."""
         for slot in work.new_slots:
             frame = work.frames[slot]
             stored = StoredKeyframe.from_prediction(dense.prediction, dense.mask, dense.levels, slot, frame.index,
                                                     frame.timestamp, work.submap_id)
             self.keyframes.append(stored)
             self._by_frame[frame.index] = stored
-        self._shared = work.frames[work.last_slot]
+        self._last_stored = work.frames[work.last_slot]
         self._shared_view = dense.views[work.last_slot]
-        if self.retrieval is not None:
-            self.retrieval.add(work.frames[work.first_new:work.last_slot + 1], work.submap_id)
 
     # ------------------------------------------------------------------ helpers of the steps
     def edge_information(self, alignment: Alignment) -> np.ndarray:
@@ -455,7 +526,7 @@ class SLAMPipeline:
         when it was usable, else the last submap's frame); if the graph cannot take even that, the
         submap is dropped (``False``)."""
         last = self.keyframes[-1].submap_id
-        shared_index = self._shared.index if self._shared is not None else -1
+        shared_index = work.shared.index if work.shared is not None else -1
         try:
             self.backend.start_segment(work.submap_id, self.backend.H_world_submap(last) @ relative, frames=frames)
             self.backend.update()
@@ -499,7 +570,18 @@ class SLAMPipeline:
         self.edges.append(report)
         log.info("loop %d->%d rejected: %s", old, submap_id, reason)
 
-    def _account(self, work: SubmapInput, seconds: dict[str, float]) -> None:
+    def _time_retrieval(self, work: SubmapInput, start: float, described: float) -> None:
+        """Add the time since ``start`` to ``work``'s retrieval seconds, descriptor extraction (a
+        model, like the frontend) apart from the search."""
+        describe = (self.retrieval.describe_seconds if self.retrieval is not None else 0.0) - described
+        work.seconds["retrieval_describe"] = work.seconds.get("retrieval_describe", 0.0) + describe
+        work.seconds["retrieval"] = work.seconds.get("retrieval", 0.0) + time.perf_counter() - start - describe
+
+    def _account(self, work: SubmapInput) -> None:
+        self.num_submaps += 1
+        self._reporter.submap(self._frames_read, keyframes=len(self.keyframes), submaps=self.num_submaps,
+                              loops=self.num_loops)
+        seconds = work.seconds
         for key, value in seconds.items():
             self.timer.seconds[key] += value
         self.submap_seconds.append(seconds)

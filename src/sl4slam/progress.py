@@ -64,24 +64,29 @@ class Progress:
             self._redirect.__enter__()
         self._start = time.perf_counter()
         self._done = 0
+        self._bar_done = 0  # frames the bar has been told of
         self._counts: dict[str, int] = {}
         self._printed = -1  # frames done at the last plain line
         self._by_submap = per_submap
 
-    def frame(self, **counts: int) -> None:
-        """One input frame done; ``counts`` (keyframes, submaps, loops) update the bar."""
-        self._done += 1
+    def frame(self, done: int | None = None, **counts: int) -> None:
+        """One input frame done (``done``: the frames done so far, when the caller counts them);
+        ``counts`` (keyframes, submaps, loops) update the bar."""
+        step = 1 if done is None else done - self._bar_done
+        self._done = self._done + 1 if done is None else done
+        self._bar_done += step
         self._counts.update(counts)
         if self._bar is not None:
-            self._bar.update(1)
+            self._bar.update(step)
             if counts:
                 self._bar.set_postfix(counts, refresh=False)
         elif self.enabled and not self._by_submap and self.total and self._done * 10 // self.total > self._printed * 10 // self.total:
             self._line()
 
     def submap(self, frames_done: int, **counts: int) -> None:
-        """One submap done: on a non-terminal, a plain line every ``every`` submaps."""
-        self._done = frames_done
+        """One submap done (``frames_done`` input frames read by then): on a non-terminal, a plain
+        line every ``every`` submaps."""
+        self._done = max(self._done, frames_done)
         self._counts.update(counts)
         if self._bar is not None or not self.enabled:
             return

@@ -19,6 +19,7 @@ The rules (sources in the settings' docstrings, ``sl4slam.config``):
 - retrieval: SALAD when its weights are found locally, else ORB;
 - device: CUDA when available (only looked up when a model runs); ``cuda`` without a GPU is refused;
 - model weights: the model's released weights;
+- overlap of the model and the graph work: only with ``tau_interval`` >= 1;
 - simulator: every error magnitude not set explicitly from its profile.
 """
 
@@ -89,6 +90,7 @@ class ResolvedConfig:
         complete_links: whether fallback links on planar frames are completed from the cameras.
         attention_check: whether loops pass the attention check.
         device: where the models run ("cpu", "cuda", "cuda:N").
+        overlap: whether the next submap's model runs while the graph works on this one.
         notes: why each "auto" became what it is, one line each.
     """
 
@@ -103,6 +105,7 @@ class ResolvedConfig:
     complete_links: bool
     attention_check: bool
     device: str
+    overlap: bool = False
     notes: tuple[str, ...] = ()
 
     @property
@@ -114,7 +117,8 @@ class ResolvedConfig:
         return {"frontend": self.frontend.name, "group": self.group.value, "graph": self.graph.value,
                 "alignment": self.alignment.value, "retrieval": self.retrieval.value,
                 "metric_upgrade": self.metric_upgrade, "complete_links": self.complete_links,
-                "attention_check": self.attention_check, "device": self.device, "notes": list(self.notes)}
+                "attention_check": self.attention_check, "device": self.device, "overlap": self.overlap,
+                "notes": list(self.notes)}
 
     def lines(self) -> list[str]:
         """What the run uses, for the console: one line, then the reasons of the "auto" choices."""
@@ -155,10 +159,14 @@ def resolve(config: SLAMConfig | ResolvedConfig, capabilities: FrontendCapabilit
     attention = _attention(settled, graph, retrieval, capabilities, notes)
     device = _device(settled, entry, retrieval) if probe_device else settled.device
     settled.sim = settled.sim.resolved()
+    overlap = settled.overlap and (retrieval is RetrievalKind.NONE or settled.retrieval.tau_interval >= 1)
+    if settled.overlap and not overlap:
+        notes.append("overlap: off (--tau-interval 0 lets a loop frame come from the submap still being worked on)")
+    settled.overlap = overlap
     if settled.false_loops.rate > 0 and retrieval is RetrievalKind.NONE:
         notes.append("false loops: none are injected (there is no retrieval to propose loops)")
     return ResolvedConfig(settled, entry, capabilities, group, graph, alignment, retrieval, metric_upgrade,
-                          complete_links, attention, device, tuple(notes))
+                          complete_links, attention, device, overlap, tuple(notes))
 
 
 def _frontend(settled: SLAMConfig, notes: list[str]) -> FrontendEntry:

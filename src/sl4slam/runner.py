@@ -28,6 +28,7 @@ from .atomic import atomic_write_bytes
 from .config import SLAMConfig
 from .errors import UserError
 from .resolve import ResolvedConfig, resolve
+from .types import FrameSource
 
 log = logging.getLogger("sl4slam")
 
@@ -71,7 +72,7 @@ def prepare_output(out_dir: str | Path, overwrite: bool = False, keep: str | Pat
     return out
 
 
-def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig | ResolvedConfig, replay_dir: str | None = None,
+def run_slam(source_path: "str | Path | FrameSource", out_dir: str | Path, config: SLAMConfig | ResolvedConfig, replay_dir: str | None = None,
              progress: bool = True, overwrite: bool = False,
              on_submap: Callable | None = None, view=None, all_frames: bool = False, keep_viewer: bool = False) -> dict:
     """Open ``source_path``, run the pipeline, write every output into ``out_dir``; return the summary.
@@ -85,7 +86,8 @@ def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig | 
         summary["ate"]["rmse"]
 
     Args:
-        source_path: image folder, video, TUM / 7-Scenes sequence, camera index or stream URL.
+        source_path: image folder, video, TUM / 7-Scenes sequence, camera index or stream URL, or an
+            opened ``FrameSource`` (its own stride and max_frames then apply).
         out_dir: the result folder (created; an earlier run in it needs ``overwrite``).
         config: the settings (resolved here, once).
         replay_dir: replay recorded frontend outputs instead of running the frontend.
@@ -113,7 +115,7 @@ def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig | 
     try:
         from .io import open_source
 
-        source = open_source(str(source_path), resolved.config.source)
+        source = source_path if _is_source(source_path) else open_source(str(source_path), resolved.config.source)
     except UserError:
         _remove_if_created(out, existed)
         raise
@@ -123,6 +125,11 @@ def run_slam(source_path: str | Path, out_dir: str | Path, config: SLAMConfig | 
     finally:
         if live:
             source.close()  # stops the reader thread, removes the kept frames
+
+
+def _is_source(value) -> bool:
+    """Whether ``value`` is an opened frame source (``sl4slam.types.FrameSource``) rather than a path."""
+    return all(hasattr(value, name) for name in ("get", "skipped", "has_ground_truth", "__iter__", "__len__"))
 
 
 def _remove_if_created(out: Path, existed: bool) -> None:
@@ -226,7 +233,7 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
         viewer.finish(result, summary)
         if keep_viewer:
             print(f"viewer stays open at http://{view.host}:{viewer.viewer.port}; Ctrl-C to close", flush=True)
-            _wait_for_interrupt()
+            viewer.serve_until_stopped()
         viewer.close()
     if status != "complete":
         raise RunInterrupted(f"{stop_reason}; partial results written to {out}", exit_code)
@@ -255,14 +262,6 @@ def _localize_all_frames(source, result, frontend, out_dir: Path, settings, prog
         entry["ate"] = {"rmse": split.all, "keyframes": split.keyframes, "non_keyframes": split.non_keyframes,
                         "metric": "one Sim(3) alignment of all posed frames, RMSE per kind"}
     return entry
-
-
-def _wait_for_interrupt() -> None:
-    try:
-        while True:
-            time.sleep(3600)
-    except KeyboardInterrupt:
-        pass
 
 
 class _stop_on_signals:

@@ -75,9 +75,9 @@ class EvalSettings:
     icp_max_correspondence: float = 0.1
     """ICP's maximum correspondence distance (m) (reference dense evaluation)."""
     keep_keyframe_points: bool = False
-    """Keep each run's ``keyframes/`` (dense points per keyframe, ~2.4 MB each at VGGT's 518x392:
-    tens of GB for a full evaluation). Off: TUM runs do not write them, and 7-Scenes runs remove
-    them once the dense metrics are measured."""
+    """Keep each run's ``keyframes/`` (dense data per keyframe, 0.2-0.3 MB each at VGGT's 518x392 in
+    the compact layout: GBs for a full evaluation). Off: TUM runs do not write them, and 7-Scenes
+    runs remove them once the dense metrics are measured."""
 
     def validate(self) -> None:
         get_dataset(self.dataset)
@@ -289,7 +289,8 @@ def keyframe_clouds(run_dir: Path, dataset: Dataset, sequence: Sequence, config:
                     max_depth: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Estimated and ground-truth clouds of a run's keyframes (the reference dense protocol).
 
-    For each ``keyframes/NNNNNN.npz`` (``NNNNNN`` = the frame's position in the source): the
+    For each keyframe file (``keyframes/NNNNNN.npz``, ``NNNNNN`` = the frame's position in the
+    source; either layout, read through :mod:`sl4slam.result.reading`): the
     frame's ground-truth depth is resized (nearest) to the estimate's resolution and unprojected
     with the dataset's intrinsics scaled to that resolution and the ground-truth pose; depth
     0 / invalid and beyond ``max_depth`` is dropped. The estimate keeps its confident points at
@@ -297,20 +298,22 @@ def keyframe_clouds(run_dir: Path, dataset: Dataset, sequence: Sequence, config:
 
     Returns ``(estimate (N, 3), ground_truth (M, 3), keyframes used)``.
     """
+    from ..result.reading import load_result
     from .metrics import ground_truth_points, resize_depth
 
-    files = sorted(p for p in (run_dir / "keyframes").glob("*.npz") if p.stem.isdigit())
-    if not files:
-        raise UserError(f"{run_dir} has no keyframes/*.npz; dense metrics need output.save_keyframe_points")
+    records = load_result(run_dir).keyframes
+    if not records:
+        raise UserError(f"{run_dir} has no keyframes/*.npz; dense metrics need output.keyframes = \"compact\" "
+                        "(the default) or \"full\"")
     source = dataset.open(sequence, stride=config.source.stride, max_frames=config.source.max_frames)
     estimate, truth, used = [], [], 0
-    for path in files:
-        with np.load(path) as keyframe:
-            points, mask, timestamp = keyframe["points_world"], keyframe["mask"], float(keyframe["timestamp"])
-        frame = source.get(int(path.stem))
+    for record in records:
+        data = record.load()
+        points, mask, timestamp = data.points_world, data.mask, record.timestamp
+        frame = source.get(record.frame_index)
         if abs(frame.timestamp - timestamp) > 1e-6:
-            raise UserError(f"{path} is frame {path.stem} at t={timestamp}, but the source has t={frame.timestamp} there; "
-                            "was the run made with other stride / max_frames settings?")
+            raise UserError(f"{record.path} is frame {record.frame_index} at t={timestamp}, but the source has "
+                            f"t={frame.timestamp} there; was the run made with other stride / max_frames settings?")
         if frame.depth is None or frame.T_world_cam is None:
             continue  # no ground truth for this keyframe (the reference skips unmatched frames too)
         height, width = points.shape[:2]
@@ -320,7 +323,7 @@ def keyframe_clouds(run_dir: Path, dataset: Dataset, sequence: Sequence, config:
         truth.append(gt_points)
         used += 1
     if not used:
-        raise UserError(f"none of the {len(files)} keyframes of {run_dir} has ground-truth depth and pose")
+        raise UserError(f"none of the {len(records)} keyframes of {run_dir} has ground-truth depth and pose")
     return np.concatenate(estimate), np.concatenate(truth), used
 
 
@@ -599,9 +602,10 @@ def _base_config(config: SLAMConfig | None, settings: EvalSettings, dataset: Dat
         from .metrics import require_open3d
 
         require_open3d()
-        base.output.save_keyframe_points = True
+        if base.output.keyframes == "none":
+            base.output.keyframes = "compact"  # the same points as "full", 14x smaller
     elif not settings.keep_keyframe_points:
-        base.output.save_keyframe_points = False  # nothing measures them
+        base.output.keyframes = "none"  # nothing measures them
     return base, record
 
 

@@ -174,7 +174,7 @@ def changed_settings(config: SLAMConfig) -> dict:
         return out
 
     defaults, current = flatten(config_to_dict(SLAMConfig())), flatten(config_to_dict(config))
-    decided_by_the_evaluation = (*SEEDED_SETTINGS, "output.save_keyframe_points", "output.cache_frontend")
+    decided_by_the_evaluation = (*SEEDED_SETTINGS, "output.keyframes", "output.cache_frontend")
     return {k: v for k, v in current.items() if defaults.get(k) != v and k not in decided_by_the_evaluation}
 
 

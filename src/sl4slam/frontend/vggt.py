@@ -84,13 +84,16 @@ class VGGTFrontend:
         match_scores: the loop check will ask for image-match ratios (``config.match_layer`` must
             then exist in the model, checked when the weights load).
         device: "auto" (CUDA when available), "cpu", "cuda" or "cuda:N".
+        submap_frames: the most frames a submap holds (new keyframes, the shared and the loop
+            frames); on a GPU without ``--max-memory``, a submap that cannot fit the GPU's memory is
+            refused when the weights load, before any frame is read.
     """
 
     name = "vggt"
     capabilities = FrontendCapabilities(scores_pairs=True, predicts_intrinsics=True)
 
     def __init__(self, config: ModelConfig, model: VGGT | None = None, with_points: bool = False,
-                 match_scores: bool = False, device: str = "auto") -> None:
+                 match_scores: bool = False, device: str = "auto", submap_frames: int = 0) -> None:
         if config.preprocess_mode not in ("crop", "pad"):
             raise UserError(f"unknown VGGT preprocessing mode '{config.preprocess_mode}': use crop or pad")
         self.config = config
@@ -101,6 +104,7 @@ class VGGTFrontend:
         self.heads = ("camera", "depth", "point") if with_points else ("camera", "depth")
         self.last_transforms: list[GridTransform] = []
         self.match_scores = match_scores
+        self.submap_frames = int(submap_frames)
         self._model = self._prepare(model) if model is not None else None
 
     def _prepare(self, model: VGGT) -> VGGT:
@@ -111,6 +115,13 @@ class VGGTFrontend:
                             "loop check off with --loop-verify-attention off")
         # Weights are converted on the CPU, one copy each, before they move to the device.
         model = apply_precision(model.eval(), self.precision).to(self.device)
+        if self.device.type == "cuda" and self.config.max_memory_gb <= 0 and self.submap_frames:
+            # no budget given: the GPU's memory is the budget; a submap that cannot fit is refused now
+            free, _ = torch.cuda.mem_get_info(self.device)
+            budget = (free + torch.cuda.memory_allocated(self.device)) / GIB
+            plan_memory(model.config, self.precision, budget, self.submap_frames, _GRID_SIDE, _GRID_SIDE,
+                        self.config.head_chunk_frames, "cuda", self.heads,
+                        budget_source=f"the GPU ({torch.cuda.get_device_name(self.device)}) has")
         if self.config.max_memory_gb > 0:
             largest = largest_fitting_frames(
                 model.config, self.precision, int(self.config.max_memory_gb * GIB), _GRID_SIDE, _GRID_SIDE,
@@ -216,8 +227,10 @@ def registry_entry() -> FrontendEntry:
     from ..models.hub import VGGT_WEIGHTS
 
     def build(resolved) -> VGGTFrontend:
-        return VGGTFrontend(resolved.config.model, with_points=resolved.config.submap.use_point_head,
-                            match_scores=resolved.attention_check, device=resolved.device)
+        submap = resolved.config.submap
+        return VGGTFrontend(resolved.config.model, with_points=submap.use_point_head,
+                            match_scores=resolved.attention_check, device=resolved.device,
+                            submap_frames=submap.size + 1 + submap.w_loop)
 
     return FrontendEntry(
         name="vggt", build=build, capabilities=VGGTFrontend.capabilities,

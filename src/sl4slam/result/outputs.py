@@ -5,14 +5,14 @@ leaves a partial file, and nothing non-finite is ever written. During a run,
 :func:`write_checkpoint` keeps ``trajectory.txt`` and ``summary.json`` current; at the end (or on
 an interruption) :func:`write_outputs` writes everything.
 
-A result folder (format version 2, ``summary.json["format"]``):
+A result folder (format version 3, ``summary.json["format"]``):
 
 | file | content |
 |---|---|
 | ``trajectory.txt`` | keyframe poses ``T_world_cam``, TUM format |
 | ``trajectory_gt.txt`` | ground truth of the same keyframes, when known |
 | ``map.ply`` | coloured, confidence-filtered dense map |
-| ``keyframes/NNNNNN.npz`` | per keyframe (NNNNNN its frame index): ``points_world`` (H, W, 3) float32, ``mask`` (H, W), ``confidence`` (H, W) float16 percentile in its submap, ``colors`` (H, W, 3) uint8, ``K``, ``T_world_cam``, ``timestamp``, ``frame_index``, ``submap_id``, ``segment`` |
+| ``keyframes/NNNNNN.npz`` | per keyframe (NNNNNN its frame index), ``output.keyframes``: "compact" (default) the run's own float16 depth in the keyframe's local frame with that frame's camera and projective map into the world (the same world points, recomputed), ``mask``, half-resolution uint8 confidence percentile, colours as one JPEG, deflated (0.22 MB at 518x392 on the TUM excerpt, 17x smaller); "full" ``points_world`` (H, W, 3) float32, ``mask`` (H, W), ``confidence`` (H, W) float16 percentile in its submap, ``colors`` (H, W, 3) uint8, uncompressed (3.66 MB); both with ``K``, ``T_world_cam``, ``timestamp``, ``frame_index``, ``submap_id``, ``segment``; "none": no folder. ``sl4slam.result.reading`` documents both layouts and reads either into the same world points |
 | ``summary.json`` | status, settings, counts, every edge (loops with their verdicts), segments, timings, memory, ATE |
 | ``trajectory.png`` | top view of the trajectory (and ground truth) |
 """
@@ -32,11 +32,12 @@ from ..metrics import ATEResult, ate
 from ..atomic import atomic_path, atomic_write_bytes, atomic_write_npz
 from ..submap import StoredKeyframe
 from . import SLAMResult
+from .reading import KEYFRAME_LAYOUTS, encode_colors, encode_depth, to_world
 
 if TYPE_CHECKING:
     from ..resolve import ResolvedConfig
 
-RESULT_FORMAT = {"name": "sl4slam-result", "version": 2}
+RESULT_FORMAT = {"name": "sl4slam-result", "version": 3}
 
 
 def keyframe_world_points(keyframe: StoredKeyframe, H_world_submap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -45,19 +46,14 @@ def keyframe_world_points(keyframe: StoredKeyframe, H_world_submap: np.ndarray) 
     Points go through the projective ``H_world_submap``; a point is valid when it passed the
     confidence mask, and maps to a finite point in front of the plane at infinity (w > 0).
     """
-    X = keyframe.points().astype(np.float64)
-    H = np.asarray(H_world_submap, dtype=np.float64)
-    w = X @ H[3, :3] + H[3, 3]
-    valid = keyframe.mask() & (w > 1e-9)
-    X_world = (X @ H[:3, :3].T + H[:3, 3]) / np.where(valid, w, 1.0)[..., None]
-    valid &= np.isfinite(X_world).all(axis=-1)
-    return X_world.astype(np.float32), valid
+    return to_world(keyframe.points(), H_world_submap, keyframe.mask())
 
 
 def write_map_and_keyframes(result: SLAMResult, out_dir: Path, max_points: int, voxel_size: float = 0.0, seed: int = 0,
-                            keyframe_dir: Path | None = None) -> int:
-    """``map.ply`` (and, with ``keyframe_dir``, one ``.npz`` per keyframe) from one pass over the
-    keyframes: each keyframe's world points are computed once. Returns the map's point count.
+                            keyframe_dir: Path | None = None, layout: str = "compact") -> int:
+    """``map.ply`` (and, with ``keyframe_dir``, one ``.npz`` per keyframe in ``layout``, "compact"
+    or "full") from one pass over the keyframes: each keyframe's world points are computed once.
+    Returns the map's point count.
 
     The map is confidence-filtered, subsampled (seeded) to at most ``max_points`` and optionally
     reduced to one point (centroid, mean colour) per voxel of size ``voxel_size``.
@@ -68,11 +64,15 @@ def write_map_and_keyframes(result: SLAMResult, out_dir: Path, max_points: int, 
     if keyframe_dir is not None:
         keyframe_dir.mkdir(parents=True, exist_ok=True)
     chunks_xyz, chunks_rgb = [], []
+    if keyframe_dir is not None and layout not in KEYFRAME_LAYOUTS:
+        raise ValueError(f"keyframe layout must be 'compact' or 'full', got {layout!r}")
     for index, keyframe in enumerate(result.keyframes):
-        X, valid = keyframe_world_points(keyframe, result.H_world(keyframe))
+        H = result.H_world(keyframe)
+        X, valid = keyframe_world_points(keyframe, H)
         colors = result.keyframe_colors(keyframe)
         if keyframe_dir is not None:
-            _write_keyframe(keyframe_dir, keyframe, X, valid, colors, result, index)
+            write = _write_compact_keyframe if layout == "compact" else _write_keyframe
+            write(keyframe_dir, keyframe, X, valid, colors, result, index, H)
         pick = valid if keep_fraction >= 1.0 else valid & (rng.random(valid.shape) < keep_fraction)
         chunks_xyz.append(X[pick])
         chunks_rgb.append(colors[pick])
@@ -87,13 +87,32 @@ def write_map_and_keyframes(result: SLAMResult, out_dir: Path, max_points: int, 
     return len(xyz)
 
 
+def _identity(keyframe: StoredKeyframe, result: SLAMResult, index: int) -> dict:
+    """What both keyframe layouts hold besides the dense arrays."""
+    return dict(K=result.K[index], T_world_cam=result.T_world_cam[index], timestamp=keyframe.timestamp,
+                frame_index=keyframe.frame_index, submap_id=keyframe.submap_id, segment=int(result.segments[index]))
+
+
 def _write_keyframe(directory: Path, keyframe: StoredKeyframe, X: np.ndarray, valid: np.ndarray, colors: np.ndarray,
-                    result: SLAMResult, index: int) -> None:
+                    result: SLAMResult, index: int, H_world_local: np.ndarray | None = None) -> None:
+    """The full layout: float32 world points, uncompressed (18 bytes per pixel)."""
     atomic_write_npz(directory / f"{keyframe.frame_index:06d}.npz", dict(
         points_world=np.where(valid[..., None], X, 0.0).astype(np.float32), mask=valid, colors=colors,
-        confidence=keyframe.confidence_percentile().astype(np.float16), K=result.K[index],
-        T_world_cam=result.T_world_cam[index], timestamp=keyframe.timestamp, frame_index=keyframe.frame_index,
-        submap_id=keyframe.submap_id, segment=int(result.segments[index])), compressed=False)
+        confidence=keyframe.confidence_percentile().astype(np.float16), **_identity(keyframe, result, index)),
+        compressed=False)
+
+
+def _write_compact_keyframe(directory: Path, keyframe: StoredKeyframe, X: np.ndarray, valid: np.ndarray,
+                            colors: np.ndarray, result: SLAMResult, index: int, H_world_local: np.ndarray) -> None:
+    """The compact layout (``sl4slam.result.reading`` documents it): the keyframe's own depth
+    (where ``valid``) with its local camera and the map ``H_world_local`` that gave ``X``, so a
+    reader recomputes ``X`` exactly; the mask; the stored half-resolution confidence ranks; the
+    colours as JPEG. ``X`` itself is not written."""
+    atomic_write_npz(directory / f"{keyframe.frame_index:06d}.npz", dict(
+        depth_bytes=encode_depth(keyframe.depth, valid), mask=valid, confidence_rank=keyframe.confidence_rank,
+        colors_jpeg=encode_colors(colors), K_local=np.asarray(keyframe.K, np.float64),
+        T_cam_local=np.asarray(keyframe.T_cam_submap, np.float64), H_world_local=np.asarray(H_world_local, np.float64),
+        **_identity(keyframe, result, index)), compressed=True)
 
 
 def voxel_downsample(xyz: np.ndarray, rgb: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
@@ -165,7 +184,7 @@ def plot_trajectories(path: Path, curves: dict[str, np.ndarray], gt: np.ndarray 
 
     reference = gt if gt is not None else next(iter(curves.values()))
     centre = reference.mean(0)
-    _, _, Vt = np.linalg.svd(reference - centre, full_matrices=False)
+    _, _, Vt = np.linalg.svd(reference - centre)  # full: two directions even for a single keyframe
     axes = Vt[:2]
     unit = "m" if gt is not None else "map units"
     fig, ax = plt.subplots(figsize=(6, 6))
@@ -278,9 +297,10 @@ def write_outputs(result: SLAMResult, out_dir: Path, config, source_name: str = 
             write_tum_trajectory(out_dir / "trajectory.txt", result.timestamps, result.T_world_cam)
         if result.T_world_cam_gt is not None:
             write_tum_trajectory(out_dir / "trajectory_gt.txt", result.timestamps, result.T_world_cam_gt)
-        keyframe_dir = out_dir / "keyframes" if config.output.save_keyframe_points else None
+        layout = config.output.keyframes
+        keyframe_dir = out_dir / "keyframes" if layout != "none" else None
         map_points = write_map_and_keyframes(result, out_dir, config.output.max_map_points, config.output.voxel_size,
-                                             seed=config.output.seed, keyframe_dir=keyframe_dir)
+                                             seed=config.output.seed, keyframe_dir=keyframe_dir, layout=layout)
         ate_result = compute_ate(result)
         if len(result.keyframes):
             curves = {"estimate": ate_result.positions_aligned if ate_result else result.T_world_cam[:, :3, 3]}

@@ -106,6 +106,7 @@ class MapViewer:
 
     def __init__(self, settings: ViewerSettings | None = None, title: str = "sl4slam", stream: TextIO = sys.stdout) -> None:
         self.settings = settings or ViewerSettings()
+        self._closed = False
         self.server = start_server(self.settings.host, self.settings.port, stream=stream)
         # no share button: the map stays on the interface it is served on
         self.server.gui.configure_theme(control_width="medium", show_share_button=False, show_logo=False)
@@ -130,8 +131,9 @@ class MapViewer:
         gui = self.server.gui
         gui.add_markdown(f"**{title}**")
         with gui.add_folder("Map"):
-            self.gui_size = gui.add_slider("Point size", min=0.1, max=10.0, step=0.1, initial_value=1.0,
-                                           hint="times the map's own point spacing (1: neighbouring points overlap)")
+            self.gui_size = gui.add_slider(
+                "Point size", min=0.1, max=10.0, step=0.1, initial_value=1.0,
+                hint="times the default, which the map's own point spacing sets (1: neighbouring points overlap)")
             self.gui_confidence = gui.add_slider("Min confidence %", min=0, max=99, step=1, initial_value=0,
                                                  hint="hide the given percentage of least confident points")
             self.gui_color = gui.add_dropdown("Colour", COLOR_MODES, initial_value="rgb")
@@ -344,6 +346,6 @@ class MapViewer:
 
     def close(self) -> None:
         """Stop the server (once; later calls do nothing)."""
-        if not getattr(self, "_closed", False):
+        if not self._closed:
             self._closed = True
             self.server.stop()

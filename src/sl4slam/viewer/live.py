@@ -29,19 +29,16 @@ from typing import TextIO
 import numpy as np
 
 from ..result.reading import GraphEdge, keyframe_colors, loop_segments
+from ..submap import StoredKeyframe
 from .result import summary_markdown
 from .scene import MapState, SubmapCloud, ViewerSettings, gt_in_estimate_frame, make_cloud, scene_extent, thumbnail
 
 PROBE_POINTS = 64
 
 
-def keyframe_confidence(keyframe) -> np.ndarray | None:
-    """``(H, W)`` float32 per-pixel confidence of a stored keyframe (its percentile in its submap),
-    ``None`` when it keeps only a mask."""
-    if hasattr(keyframe, "confidence_percentile"):
-        return np.asarray(keyframe.confidence_percentile(), np.float32)
-    confidence = getattr(keyframe, "confidence", None)
-    return None if confidence is None else np.asarray(confidence, np.float32)
+def keyframe_confidence(keyframe: StoredKeyframe) -> np.ndarray:
+    """``(H, W)`` float32 per-pixel confidence of a stored keyframe (its percentile in its submap)."""
+    return np.asarray(keyframe.confidence_percentile(), np.float32)
 
 
 def apply_projective(H: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -201,8 +198,8 @@ class LiveViewer:
                 state.thumbnails[keyframe.frame_index] = thumbnail(keyframe_colors(keyframe, snap.colors),
                                                                    self.settings.thumbnail_width)
                 self._thumbs_done.add(keyframe.frame_index)
-            loops = [GraphEdge("loop", (e.submap_from, e.submap_to), e.frame_index, getattr(e, "query_frame", None))
-                     for e in snap.edges if e.kind == "loop" and getattr(e, "accepted", True)]
+            loops = [GraphEdge("loop", (e.submap_from, e.submap_to), e.frame_index, e.query_frame)
+                     for e in snap.edges if e.kind == "loop" and e.accepted]
             state.loop_segments = loop_segments(state.frame_indices, state.submap_ids, T_world_cam[:, :3, 3], loops) \
                 if len(T_world_cam) else np.zeros((0, 2, 3))
             ate_rmse = None
@@ -212,7 +209,7 @@ class LiveViewer:
                 if aligned is not None:
                     state.gt_positions, ate_rmse = aligned
             counts = {"frames": snap.frames, "keyframes": len(keyframes), "submaps": len(snap.estimates),
-                      "loops": len(loops), "fallbacks": sum(1 for e in snap.edges if getattr(e, "fallback", None))}
+                      "loops": len(loops), "fallbacks": sum(1 for e in snap.edges if e.fallback)}
             summary = snap.summary if snap.summary is not None else {"counts": counts}
             if len(new) == len(state.clouds) and new:
                 viewer.set_up_direction()

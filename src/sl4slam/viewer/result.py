@@ -12,7 +12,7 @@ from typing import TextIO
 
 import numpy as np
 
-from ..result.reading import RunResult, load_result
+from ..result.reading import KEYFRAMES_OPTION, RunResult, load_result
 from .scene import MapState, ViewerSettings, gt_in_estimate_frame, make_cloud, thumbnail
 
 
@@ -73,7 +73,7 @@ def state_from_result(result: RunResult, settings: ViewerSettings, workers: int 
         aligned = gt_in_estimate_frame(timestamps, state.T_world_cam, *result.gt)
         if aligned is not None:
             state.gt_positions, ate_rmse = aligned
-    note = "" if records else "no keyframes/*.npz: trajectory only (run with --save-keyframe-points for the map)"
+    note = "" if records else f"no keyframes/*.npz: trajectory only (run with {KEYFRAMES_OPTION} for the map)"
     state.summary_markdown = summary_markdown(result.summary, ate_rmse, note)
     return state
 

@@ -155,13 +155,6 @@ def frustum_fov(K: np.ndarray, height: int) -> float:
     return float(2.0 * np.arctan2(height / 2.0, K[1, 1] / K[2, 2]))
 
 
-def evenly_spaced(count: int, limit: int) -> np.ndarray:
-    """At most ``limit`` indices spread over ``range(count)``, always including the last."""
-    if count <= limit:
-        return np.arange(count)
-    return np.unique(np.round(np.linspace(0, count - 1, max(limit, 2))).astype(np.int64))
-
-
 def frustum_indices(positions: np.ndarray, limit: int) -> np.ndarray:
     """Which of the keyframes at ``positions (N, 3)`` (in trajectory order) get a frustum: all when
     ``N <= limit``, otherwise at most ``limit`` (the first and the last included) evenly spread

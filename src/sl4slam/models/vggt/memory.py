@@ -135,8 +135,11 @@ def plan_memory(
     max_chunk: int = 8,
     device_type: str = "cpu",
     heads: tuple[str, ...] = ("camera", "depth"),
+    budget_source: str = "",
 ) -> MemoryPlan:
     """The largest dense-head chunk (at most ``max_chunk`` frames) whose forward fits ``budget_gb`` GiB.
+
+    ``budget_source``: where the budget comes from, for the message ("" : ``--max-memory``).
 
     Raises:
         UserError: not even one frame at a time fits; names the largest submap that does.
@@ -150,6 +153,7 @@ def plan_memory(
     largest = largest_fitting_frames(model_config, precision, budget, height, width, device_type, heads)
     raise UserError(
         f"a submap of {frames} frames at {width}x{height} needs about {need / GIB:.1f} GiB in {precision.mode} "
-        f"but --max-memory is {budget_gb:g} GiB; the largest submap that fits is {largest} frames: "
-        "lower --submap-size, raise --max-memory, or use a smaller --dtype (bf16, int8 on CPU)"
+        f"but {budget_source or '--max-memory is'} {budget_gb:.3g} GiB; the largest submap that fits is {largest} frames "
+        f"(--submap-size {max(1, largest - 2)} with the shared and a loop frame): lower --submap-size, "
+        f"{'raise --max-memory, ' if not budget_source else ''}or use a smaller --dtype (bf16, int8 on CPU)"
     )

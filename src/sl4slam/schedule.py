@@ -1,0 +1,151 @@
+"""When each step of a submap runs: one after the other, or the model overlapping the graph work.
+
+A submap goes through four steps of ``SLAMPipeline`` (``sl4slam.pipeline``):
+
+- A, ``assemble``: the shared frame, the new keyframes and the loop frames retrieval proposes;
+- F, ``run_frontend``: the model's forward (the expensive part; it touches no pipeline state);
+- R, ``accept``: the outcome taken: the keyframes handed to retrieval and the last one made the next
+  submap's shared frame, or the failure booked;
+- S, ``finish``: points, odometry, graph, loop checks and the stored keyframes.
+
+Dependencies: A(k+1) needs R(k) (retrieval must hold submap k, and the shared frame comes from it);
+F(k+1) needs A(k+1); S(k) needs R(k). Nothing else: S(k) neither reads nor changes what A(k+1) and
+F(k+1) use (loop candidates come from submaps at least ``tau_interval`` >= 1 older, which S has
+stored long before; rejected loop frames are booked at R). So F(k+1) can run in a worker while
+S(k) runs, and the results are the same as one step after the other, byte for byte
+(``tests/test_schedule.py``). The one exception is a submap that the graph cannot take at all (S
+drops it): the next submap shares another frame then, so its frames are rebuilt and its forward
+is run again (:meth:`OverlappedScheduler._reframe`).
+
+The overlapped scheduler keeps a bounded queue: at most one submap waiting for the model and one
+in it; keyframe selection (the caller) waits when both are taken. A forward cannot be
+interrupted: on Ctrl-C the worker is left to finish in the background (a daemon thread) while the
+run writes what it has.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from typing import TYPE_CHECKING, Sequence
+
+from .types import Frame
+
+if TYPE_CHECKING:
+    from .pipeline import FrontendOutcome, SLAMPipeline, SubmapInput
+
+
+def make_scheduler(pipeline: "SLAMPipeline", overlap: bool) -> "SequentialScheduler":
+    """The scheduler of a run: overlapped when ``overlap`` (``SLAMConfig.overlap``, settled by
+    ``sl4slam.resolve``), else sequential."""
+    return OverlappedScheduler(pipeline) if overlap else SequentialScheduler(pipeline)
+
+
+class SequentialScheduler:
+    """Every step of a submap as soon as its keyframes are selected: A, F, R, S."""
+
+    def __init__(self, pipeline: "SLAMPipeline") -> None:
+        self.pipeline = pipeline
+
+    def submit(self, new_frames: Sequence[Frame]) -> None:
+        """The new keyframes of the next submap."""
+        self.pipeline.process_submap(list(new_frames))
+
+    def poll(self) -> None:
+        """Do whatever can be done without waiting (nothing is ever pending here)."""
+
+    def drain(self) -> None:
+        """Finish every submap submitted."""
+
+    def close(self) -> None:
+        """Release the worker (none here)."""
+
+
+class _Forward:
+    """One forward in a daemon thread; its outcome is read once it is done."""
+
+    def __init__(self, pipeline: "SLAMPipeline", work: "SubmapInput") -> None:
+        self.work = work
+        self.outcome: "FrontendOutcome | None" = None
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(pipeline,), name=f"sl4slam-frontend-{work.submap_id}",
+                                        daemon=True)
+        self._thread.start()
+
+    def _run(self, pipeline: "SLAMPipeline") -> None:
+        try:
+            self.outcome = pipeline.run_frontend(self.work)
+        finally:
+            self._done.set()
+
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    def result(self) -> "FrontendOutcome":
+        self._done.wait()
+        if self.outcome is None:  # run_frontend catches every exception of the model; only a bug gets here
+            raise RuntimeError(f"the frontend worker of submap {self.work.submap_id} ended without an outcome")
+        return self.outcome
+
+
+class OverlappedScheduler(SequentialScheduler):
+    """The model of the next submap runs while the graph works on this one (see the module doc).
+
+    Attributes:
+        waiting: batches of new keyframes selected but not yet assembled (at most one).
+        running: the forward in the worker, if any.
+    """
+
+    def __init__(self, pipeline: "SLAMPipeline") -> None:
+        super().__init__(pipeline)
+        self.waiting: deque[list[Frame]] = deque()
+        self.running: _Forward | None = None
+
+    def submit(self, new_frames: Sequence[Frame]) -> None:
+        self.waiting.append(list(new_frames))
+        self.poll()
+        while len(self.waiting) > 1:  # the bound: keyframe selection waits for the model
+            self._advance(block=True)
+
+    def poll(self) -> None:
+        while self._advance(block=False):
+            pass
+
+    def drain(self) -> None:
+        while self.running is not None or self.waiting:
+            self._advance(block=True)
+
+    def close(self) -> None:
+        """Forget what is left (after an error or Ctrl-C): a forward still running finishes in its
+        daemon thread, unread."""
+        self.running = None
+        self.waiting.clear()
+
+    def _advance(self, block: bool) -> bool:
+        """One step of the schedule; whether anything happened."""
+        if self.running is None:
+            if not self.waiting:
+                return False
+            self._start(self.waiting.popleft())
+            return True
+        if not (block or self.running.done()):
+            return False
+        forward, self.running = self.running, None
+        prediction = self.pipeline.accept(forward.work, forward.result())  # R(k)
+        if self.waiting:
+            self._start(self.waiting.popleft())  # A(k+1), F(k+1) in the worker ...
+        if prediction is not None and not self.pipeline.finish(forward.work, prediction):  # ... while S(k) runs here
+            self._reframe()
+        return True
+
+    def _start(self, new_frames: list[Frame]) -> None:
+        self.running = _Forward(self.pipeline, self.pipeline.assemble(new_frames))
+
+    def _reframe(self) -> None:
+        """The graph dropped the submap the running one shares a frame with: rebuild the running
+        submap on the frame the graph holds and run its forward again."""
+        if self.running is None:
+            return
+        stale = self.running
+        stale.result()  # its outcome belongs to frames that are no longer the submap's
+        self.running = _Forward(self.pipeline, self.pipeline.reframe(stale.work))
