@@ -48,9 +48,11 @@ def _raw(frame) -> int:
     return int(frame.path.split("#")[1])
 
 
-def test_slow_consumer_drops_frames_and_counts_them(tmp_path: Path) -> None:
+def test_slow_consumer_drops_frames_and_counts_them(tmp_path: Path, caplog) -> None:
     """A consumer that needs 0.1 s per frame behind a 30 frames/s stream: it gets the newest frame
-    each time it asks (every third), the two before it are dropped and counted, nothing queues."""
+    each time it asks (every third), the two before it are dropped and counted, nothing queues, and
+    the run is told once that it cannot keep up."""
+    caplog.set_level("WARNING", logger="sl4slam")
     video = write_video(tmp_path / "v.avi", frames=60)
     clock = ManualClock()
     source = LiveSource(video, clock=clock)
@@ -67,6 +69,8 @@ def test_slow_consumer_drops_frames_and_counts_them(tmp_path: Path) -> None:
     np.testing.assert_array_equal(indices, np.arange(len(frames)))  # indices count delivered frames
     np.testing.assert_allclose(stamps, raw / FPS)  # a file's frames are stamped with their time in it
     assert clock.now() == pytest.approx(2.1)  # the stream's 2 s, then the last frame's 0.1 s
+    notices = [r for r in caplog.records if "slower than the stream" in r.getMessage()]
+    assert len(notices) == 1 and "live.dropped" in notices[0].getMessage()
 
 
 def test_a_stride_thins_before_the_slot(tmp_path: Path) -> None:

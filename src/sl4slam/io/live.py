@@ -227,6 +227,10 @@ class LiveSource:
         """Put a frame into the one-slot buffer (the caller holds the lock in threaded mode)."""
         if self._slot is not None:
             self.dropped += 1  # the consumer did not take the previous frame in time
+            if self.dropped == 1:  # said once: the run cannot keep up, and what it does about it
+                logger.warning("%s: the run is slower than the stream (%.0f Hz): it takes the newest frame when it "
+                               "is ready and drops the ones in between (counted in summary.json live.dropped)",
+                               self.name, self.fps)
         self._slot = (raw, stamp, bgr)
 
     def _play_on_clock(self) -> None:
