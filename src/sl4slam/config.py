@@ -813,14 +813,28 @@ class ModelConfig(Section):
 
 @dataclass
 class SourceConfig(Section):
-    """Which input frames a run reads (applied by the source, ``sl4slam.io.open_source``)."""
+    """Which input frames a run reads (stride and max_frames, applied by the source:
+    ``sl4slam.io.open_source``), and what else it knows that the run can use."""
 
     section: ClassVar[str] = "source"
+    flag_names: ClassVar[dict[str, str]] = {"intrinsics": "--intrinsics", "metric_depth": "--metric-depth"}
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {"metric_depth": ("off", "sensor")}
 
     stride: int = 1
     """Use every n-th input frame."""
     max_frames: int = 0
     """Stop after this many input frames (after the stride; 0: all)."""
+    intrinsics: str = ""
+    """A known calibration of the camera: "fx,fy,cx,cy" in the source's pixels, a file (TUM-style
+    ``fx = .. fy = .. cx = .. cy = ..``, or a COLMAP cameras.txt), "auto" (the source's own: TUM
+    RGB-D and 7-Scenes), or "" (none: the model's guess, the paper's setting). Each frame's points
+    are then rebuilt along the known camera's rays from the model's depth, the links between
+    submaps carry no calibration term, and the metric upgrade is skipped (``sl4slam.intrinsics``)."""
+    metric_depth: str = "off"
+    """"sensor": scale each submap (points and camera translations) by the median ratio of the
+    sensor's depth to the model's over its confident pixels with a valid sensor depth (an RGB-D
+    source: TUM, 7-Scenes), so that the trajectory and the map come out in metres; "off": the
+    model's units (the first submap's)."""
 
     def validate(self) -> None:
         super().validate()

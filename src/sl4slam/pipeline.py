@@ -31,6 +31,7 @@ Nothing that goes wrong inside a submap ends a run:
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -41,16 +42,18 @@ import numpy as np
 from .backend import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
 from .backend.evidence import edge_information
 from .compose import _BUILD, build_stages
-from .config import SLAMConfig
+from .config import SLAMConfig, SourceConfig
 from .edges import EdgeReport, camera_problem, edge_problem
 from .errors import UserError
 from .geometry import normalize_sl4, to_4x4
+from .intrinsics import FOCAL_RATIO_WARNING, KnownIntrinsics, focal_ratios, from_source, on_grid
 from .keyframes import KeyframeSelector
 from .loops import LoopEvidence, LoopVerifier, grey_for_check
 from .metric_frame import MetricFrame
 from .progress import Progress, StageTimer
 from .resolve import ResolvedConfig, resolve
 from .result import SLAMResult, SourceColors, keyframe_cameras
+from .sensor_scale import scaled, sensor_scale
 from .submap import StoredKeyframe, confidence_levels, confidence_mask, submap_points
 from .types import (Aligner, Alignment, Frame, FrameSource, FrameView, Frontend, FrontendCapabilities, LoopCandidate,
                     Retrieval, SubmapPrediction)
@@ -141,14 +144,19 @@ class FrontendOutcome:
     seconds: float = 0.0
 
 
-def source_problem(source: FrameSource, capabilities: FrontendCapabilities, frontend_name: str) -> str | None:
-    """Why a run cannot use ``source`` with this frontend (too few frames, no ground truth for a
-    frontend that reads it), or ``None``; checked before any frame is read."""
+def source_problem(source: FrameSource, capabilities: FrontendCapabilities, frontend_name: str,
+                   settings: SourceConfig | None = None) -> str | None:
+    """Why a run cannot use ``source`` with this frontend and these ``[source]`` settings (too few
+    frames, no ground truth for a frontend that reads it, no depth images for the sensor's scale),
+    or ``None``; checked before any frame is read."""
     if len(source) < 2:
         return f"{source.name}: {len(source)} frame(s) found; SLAM needs at least 2 frames"
     if capabilities.needs_ground_truth and not source.has_ground_truth:
         return (f"{source.name} has no depth and ground-truth poses, which the {frontend_name} frontend needs (an RGB-D "
                 "sequence: TUM, 7-Scenes or the synthetic world); use a model (--model vggt)")
+    if settings is not None and settings.metric_depth == "sensor" and not source.has_ground_truth:
+        return (f"--metric-depth sensor needs depth images, which {source.name} has not (an RGB-D sequence: TUM, "
+                "7-Scenes); use --metric-depth off")
     return None
 
 
@@ -210,6 +218,10 @@ class SLAMPipeline:
         self._shared_view: FrameView | None = None  # ... at full precision, as its submap reconstructed it
         self._source: FrameSource | None = None
         self._frames_read = 0
+        self.known_intrinsics: KnownIntrinsics | None = None  # set by consume() from the source
+        self._focal_ratios: list[float] = []  # the model's focal over the known one, per frame
+        self._sensor_scales: dict = {"measured": [], "kept": 0}
+        self._last_scale = 1.0
         self._reporter = Progress(None, enabled=False)  # consume() makes the run's own
         self.colors: SourceColors | None = None  # the keyframes' colours, re-read from the source
 
@@ -230,9 +242,10 @@ class SLAMPipeline:
         """
         from .schedule import make_scheduler
 
-        problem = source_problem(source, self.frontend.capabilities, self.frontend.name)
+        problem = source_problem(source, self.frontend.capabilities, self.frontend.name, self.config.source)
         if problem:
             raise UserError(problem)
+        self.known_intrinsics = from_source(source, self.config.source.intrinsics)
         self.colors = SourceColors(source, self.frontend)
         self._source = source
         pending: list[Frame] = []
@@ -322,11 +335,15 @@ class SLAMPipeline:
 
     def run_frontend(self, work: SubmapInput) -> FrontendOutcome:
         """The frontend's prediction of ``work`` (touches no pipeline state: it may run in a worker)."""
+        keywords: dict = {}
         pairs = self._match_pairs(work)
+        if pairs:  # only frontends asked for attention scores need to know the keyword
+            keywords["match_pairs"] = pairs
+        if self.known_intrinsics is not None and self.frontend.capabilities.accepts_intrinsics:
+            keywords["intrinsics"] = np.repeat(self.known_intrinsics.K[None], len(work.frames), axis=0)
         start = time.perf_counter()
         try:
-            # only frontends asked for attention scores need to know the keyword
-            prediction = self.frontend.reconstruct(work.frames, work.submap_id, **({"match_pairs": pairs} if pairs else {}))
+            prediction = self.frontend.reconstruct(work.frames, work.submap_id, **keywords)
             outcome = FrontendOutcome(prediction, prediction_problem(prediction, len(work.frames)))
         except UserError as exc:  # a problem of the settings (a cache that does not match, a memory budget)
             outcome = FrontendOutcome(None, str(exc), error=exc)
@@ -370,6 +387,7 @@ class SLAMPipeline:
         the graph could not take it (it is dropped, and the next submap shares the frame before it)."""
         timer = StageTimer()
         with timer("points"):
+            prediction = self.calibrate(work, prediction)
             dense = self.dense_submap(work, prediction)
         with timer("alignment"):
             odometry = self.align_odometry(work, dense)
@@ -385,6 +403,34 @@ class SLAMPipeline:
         work.seconds.update(timer.seconds)
         self._account(work)
         return added
+
+    def calibrate(self, work: SubmapInput, prediction: SubmapPrediction) -> SubmapPrediction:
+        """The prediction with what the source knows: the known intrinsics in place of the model's
+        (``sl4slam.intrinsics``) and the sensor's metric scale (``sl4slam.sensor_scale``)."""
+        if self.known_intrinsics is not None:
+            if prediction.image_to_grid is None and prediction.depth.shape[1:] != work.frames[0].rgb.shape[:2]:
+                raise UserError(f"the {self.frontend.name} frontend does not say how its grid maps the input frames; "
+                                "--intrinsics cannot be used with it")
+            A = prediction.image_to_grid if prediction.image_to_grid is not None else np.eye(3)[None].repeat(len(work.frames), 0)
+            K = on_grid(self.known_intrinsics.K, A)
+            ratios = focal_ratios(np.asarray(prediction.K, np.float64), K)
+            if not self._focal_ratios and not FOCAL_RATIO_WARNING[0] <= float(np.median(ratios)) <= FOCAL_RATIO_WARNING[1]:
+                log.warning("the model's focal length is %.2f times the given intrinsics' (%s) in the first submap: "
+                            "check that they are for this camera and resolution", float(np.median(ratios)),
+                            self.known_intrinsics.origin)
+            self._focal_ratios.extend(ratios.tolist())
+            prediction = dataclasses.replace(prediction, K=K)
+        if self.config.source.metric_depth == "sensor":
+            mask = confidence_mask(prediction.confidence, prediction.depth, self.config.submap.tau_conf)
+            scale, votes = sensor_scale(work.frames, prediction, mask)
+            if scale is None:
+                self._sensor_scales["kept"] += 1
+                scale = self._last_scale
+            else:
+                self._sensor_scales["measured"].append(scale)
+                self._last_scale = scale
+            prediction = scaled(prediction, scale)
+        return prediction
 
     def dense_submap(self, work: SubmapInput, prediction: SubmapPrediction) -> DenseSubmap:
         """Confidence masks for the submap, and points for the frames that are aligned: the shared
@@ -617,6 +663,33 @@ class SLAMPipeline:
         except (RuntimeError, ValueError) as exc:
             raise UserError(f"the graph cannot be solved at the end of the run ({exc}); no trajectory can be written") from None
 
+    def _source_knowledge(self) -> dict:
+        """What the known intrinsics and the sensor's scale did, for the summary."""
+        out: dict = {}
+        if self.known_intrinsics is not None:
+            ratios = np.asarray(self._focal_ratios)
+            out["intrinsics"] = {
+                "K": [round(v, 4) for v in self.known_intrinsics.values()], "origin": self.known_intrinsics.origin,
+                "note": self.known_intrinsics.note, "model_given_it": self.frontend.capabilities.accepts_intrinsics,
+                "model_focal_ratio": {"median": round(float(np.median(ratios)), 4), "min": round(float(ratios.min()), 4),
+                                      "max": round(float(ratios.max()), 4)} if len(ratios) else None}
+        if self.config.source.metric_depth == "sensor":
+            measured = self._sensor_scales["measured"]
+            out["metric_depth"] = {"submaps_scaled": len(measured), "kept_neighbour_scale": self._sensor_scales["kept"],
+                                   "scale_median": round(float(np.median(measured)), 5) if measured else None}
+        return out
+
+    def _calibration_notes(self) -> list[str]:
+        """A warning when the model's focal disagrees wildly with the known one (a wrong file?)."""
+        if self.known_intrinsics is None or not self._focal_ratios:
+            return []
+        median = float(np.median(self._focal_ratios))
+        low, high = FOCAL_RATIO_WARNING
+        if low <= median <= high:
+            return []
+        return [f"the model's focal length is {median:.2f} times the given one ({self.known_intrinsics.origin}); "
+                "the given intrinsics were used: check that they are for this camera and resolution"]
+
     def snapshot(self, metric_upgrade: bool = False) -> SLAMResult:
         """The result under iSAM2's current estimate (no polish): for checkpoints and live viewers;
         ``metric_upgrade`` also upgrades it (about 0.1 s for 500 keyframes)."""
@@ -642,7 +715,8 @@ class SLAMPipeline:
             "segments": int(segments.max()) + 1 if len(segments) else 0,
             "dropped_frames": dict(self.dropped),
             "frontend_failures": list(self.frontend_failures),
-            "notes": list(self.notes),
+            "notes": list(self.notes) + self._calibration_notes(),
+            **self._source_knowledge(),
             "seconds_by_stage": dict(self.timer.seconds),
             "stored_bytes": int(sum(k.nbytes for k in keyframes)),
             "seconds_per_submap": {

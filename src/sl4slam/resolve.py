@@ -12,8 +12,9 @@ The rules (sources in the settings' docstrings, ``sl4slam.config``):
 - graph design: "keyframe" (VGGT-SLAM 2.0) for the SL(4) group, "submap" for Sim(3);
 - alignment model: "calibration" for the keyframe graph, "sl4" for the SL(4) submap graph,
   "sim3-cameras" for Sim(3); a projective model on a Sim(3) graph is refused;
-- metric upgrade: on for the SL(4) submap graph only; links are completed from the cameras only
-  where it runs, on SL(4) links;
+- metric upgrade: on for the SL(4) submap graph only, and never with known intrinsics (the
+  cameras are metric already); links are completed from the cameras only where it runs, on SL(4)
+  links;
 - attention loop check: never without retrieval; on with the keyframe graph when the frontend
   scores pairs; "on" with a frontend that cannot is refused;
 - retrieval: SALAD when its weights are found locally, else ORB;
@@ -36,6 +37,7 @@ from typing import Any
 
 from .config import SLAMConfig
 from .errors import UserError
+from .intrinsics import parse_intrinsics
 from .registry import FrontendEntry, frontend_entries, frontend_entry, frontend_names
 from .types import FrontendCapabilities
 
@@ -154,6 +156,11 @@ def resolve(config: SLAMConfig | ResolvedConfig, capabilities: FrontendCapabilit
     graph = _graph(settled, group, notes)
     alignment = _alignment(settled, group, graph, notes)
     metric_upgrade = _metric_upgrade(settled, group, graph, notes)
+    if settled.source.intrinsics.strip():
+        parse_intrinsics(settled.source.intrinsics)  # a bad spec is one line now; "auto" needs the source
+        if metric_upgrade:
+            notes.append("metric upgrade: off (known intrinsics: the cameras are metric already)")
+        metric_upgrade, settled.upgrade.mode = False, "off"
     complete_links = settled.upgrade.complete_links and group is Group.SL4 and metric_upgrade
     retrieval = _retrieval(settled, notes)
     attention = _attention(settled, graph, retrieval, capabilities, notes)

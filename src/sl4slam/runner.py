@@ -27,6 +27,7 @@ from typing import Callable
 from .atomic import atomic_write_bytes
 from .config import SLAMConfig
 from .errors import UserError
+from .intrinsics import from_source
 from .resolve import ResolvedConfig, resolve
 from .types import FrameSource
 
@@ -147,9 +148,10 @@ def check_before_frames(source, resolved: ResolvedConfig, replay_dir, all_frames
     if all_frames and live:
         raise UserError("--all-frames needs a re-readable source (a video file or a folder): a live source keeps "
                         "only its keyframes; record the stream to a file first")
-    problem = source_problem(source, resolved.capabilities, resolved.frontend.name)
+    problem = source_problem(source, resolved.capabilities, resolved.frontend.name, resolved.config.source)
     if problem:
         raise UserError(problem)
+    from_source(source, resolved.config.source.intrinsics)  # a calibration that cannot be used: one line now
     if resolved.config.false_loops.rate > 0 and not source.has_ground_truth:
         raise UserError(f"--false-loop-rate needs ground-truth poses and depth, which {source.name} has not")
     if replay_dir is None and resolved.frontend.weights is not None:
@@ -325,6 +327,16 @@ def print_summary(summary: dict, out_dir: Path, stream=sys.stdout) -> None:
             line += (f"; ATE RMSE {format_length(info['ate']['non_keyframes'])} non-keyframes, "
                      f"{format_length(info['ate']['keyframes'])} keyframes")
         print(line, file=stream)
+    if "intrinsics" in summary:
+        info = summary["intrinsics"]
+        ratio = info["model_focal_ratio"]
+        print(f"intrinsics: fx,fy,cx,cy = {','.join(f'{v:g}' for v in info['K'])} ({info['origin']})"
+              + (f"; the model's focal was {ratio['median']:.3f}x (median, {ratio['min']:.3f}-{ratio['max']:.3f})" if ratio else "")
+              + (f"; {info['note']}" if info["note"] else ""), file=stream)
+    if "metric_depth" in summary:
+        info = summary["metric_depth"]
+        print(f"metric depth from the sensor: {info['submaps_scaled']} submaps scaled (median {info['scale_median']}), "
+              f"{info['kept_neighbour_scale']} without enough valid sensor depth kept their neighbour's scale", file=stream)
     for note in summary.get("notes", []):
         print(f"note: {note}", file=stream)
     print(f"outputs in {out_dir}", file=stream)

@@ -60,6 +60,14 @@ class FrameSource(Protocol):
         """Random access by ``Frame.index``."""
         ...
 
+    def image_size(self) -> tuple[int, int] | None:
+        """``(width, height)`` of the frames, read without decoding one (``None`` when unknown)."""
+        ...
+
+    def calibration(self) -> np.ndarray | None:
+        """``(3, 3)`` intrinsics the source knows (a dataset's published calibration), or ``None``."""
+        ...
+
 
 @dataclass
 class SubmapPrediction:
@@ -86,6 +94,10 @@ class SubmapPrediction:
             when asked (``Frontend.reconstruct(..., match_pairs=...)``).
         match_ratios: optional ``(n,)`` float32 their image-match ratios (VGGT's attention,
             ``sl4slam.models.vggt.attention``; the simulator's true-overlap stand-in).
+        image_to_grid: optional ``(S, 3, 3)`` float64 affine map from each input frame's pixels to
+            the grid's (integer coordinates at pixel centres in both), so that a known calibration
+            of the input frames can be put on the grid (``sl4slam.intrinsics``); ``None``: the
+            identity, which only a frontend predicting on the frames' own pixels may leave it.
     """
 
     depth: np.ndarray
@@ -98,6 +110,7 @@ class SubmapPrediction:
     principal_point: np.ndarray | None = None
     match_pairs: np.ndarray | None = None
     match_ratios: np.ndarray | None = None
+    image_to_grid: np.ndarray | None = None
 
     @property
     def num_frames(self) -> int:

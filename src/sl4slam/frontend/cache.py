@@ -23,7 +23,7 @@ from ..atomic import atomic_write_npz
 from ..types import Frame, Frontend, FrontendCapabilities, SubmapPrediction
 
 _FIELDS = ("depth", "confidence", "T_cam_submap", "K", "colors", "points", "points_confidence", "principal_point",
-           "match_pairs", "match_ratios")
+           "match_pairs", "match_ratios", "image_to_grid")
 
 
 def _path(directory: Path, submap_id: int) -> Path:

@@ -73,6 +73,16 @@ def resolve_compute_dtype(dtype: str, device: torch.device) -> torch.dtype:
     return precision.autocast or torch.float32
 
 
+def grid_affine(transform: GridTransform) -> np.ndarray:
+    """``(3, 3)`` affine from input pixels to grid pixels, integer coordinates at pixel centres in
+    both (the transform's continuous coordinates put pixel ``i``'s centre at ``i + 0.5``)."""
+    A = np.eye(3)
+    A[0, 0], A[1, 1] = transform.scale_x, transform.scale_y
+    A[0, 2] = 0.5 * transform.scale_x + transform.offset_x - 0.5
+    A[1, 2] = 0.5 * transform.scale_y + transform.offset_y - 0.5
+    return A
+
+
 class VGGTFrontend:
     """Frontend backed by our VGGT implementation.
 
@@ -212,6 +222,7 @@ class VGGTFrontend:
             K=intrinsics.numpy().astype(np.float64),
             colors=to_uint8_rgb(images),
             principal_point=np.tile([width / 2.0, height / 2.0], (len(frames), 1)),
+            image_to_grid=np.stack([grid_affine(t) for t in transforms]),
         )
         if match_pairs:
             prediction.match_pairs = np.asarray(match_pairs, dtype=np.int64).reshape(-1, 2)

@@ -130,9 +130,30 @@ class IndexedSource(ABC):
     name: str
     skipped: list[str]
     _items: list
+    K: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self._items)
+
+    def _image_path(self, position: int) -> Path:
+        """The image file of ``position`` (for its size, read from the header alone)."""
+        raise NotImplementedError
+
+    def image_size(self) -> tuple[int, int] | None:
+        """``(width, height)`` of the first frame, from its file's header (no pixels decoded)."""
+        if not self._items:
+            return None
+        from PIL import Image
+
+        try:
+            with Image.open(self._image_path(0)) as image:
+                return tuple(image.size)
+        except (OSError, NotImplementedError):
+            return None
+
+    def calibration(self) -> np.ndarray | None:
+        """``(3, 3)`` intrinsics the source knows for its frames (a dataset's published ones), or ``None``."""
+        return None if self.K is None else self.K.copy()
 
     @abstractmethod
     def _load(self, position: int) -> Frame | None:

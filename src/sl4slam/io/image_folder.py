@@ -64,6 +64,9 @@ class ImageFolderSource(IndexedSource):
         """The image files, in frame order."""
         return list(self._items)
 
+    def _image_path(self, position: int) -> Path:
+        return self._items[position]
+
     def _describe(self, position: int) -> str:
         return self._items[position].name
 

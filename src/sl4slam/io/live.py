@@ -256,6 +256,14 @@ class LiveSource:
     def __len__(self) -> int:
         return self.max_frames if self.max_frames else sys.maxsize
 
+    def image_size(self) -> tuple[int, int] | None:
+        """Unknown before the first frame arrives."""
+        return None
+
+    def calibration(self) -> np.ndarray | None:
+        """A camera or stream states no intrinsics."""
+        return None
+
     @property
     def stopped(self) -> bool:
         """True once :meth:`stop` (or Ctrl-C during iteration) asked the iteration to end."""

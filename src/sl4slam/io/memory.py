@@ -36,6 +36,16 @@ class ListSource:
     def __len__(self) -> int:
         return len(self._frames)
 
+    def image_size(self) -> tuple[int, int] | None:
+        return (self._frames[0].rgb.shape[1], self._frames[0].rgb.shape[0]) if self._frames else None
+
+    def calibration(self) -> np.ndarray | None:
+        """The frames' intrinsics when every frame has the same, else ``None``."""
+        Ks = [f.K for f in self._frames]
+        if not Ks or any(K is None for K in Ks) or any(not np.allclose(K, Ks[0]) for K in Ks):
+            return None
+        return np.asarray(Ks[0], np.float64).copy()
+
     def __iter__(self) -> Iterator[Frame]:
         return iter(self._frames)
 

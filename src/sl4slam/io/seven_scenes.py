@@ -97,6 +97,16 @@ class SevenScenesSource(IndexedSource):
     def _describe(self, position: int) -> str:
         return self._items[position][1].name
 
+    def _image_path(self, position: int) -> Path:
+        return self._items[position][1]
+
+    def calibration(self) -> np.ndarray | None:
+        """The given intrinsics, else 7-Scenes' published ones for the frames' size."""
+        if self.K is not None:
+            return self.K.copy()
+        size = self.image_size()
+        return None if size is None else seven_scenes_intrinsics(*size)
+
     def _load(self, position: int) -> Frame | None:
         number, color_path = self._items[position]
         rgb = read_rgb(color_path)

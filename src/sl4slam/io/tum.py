@@ -315,6 +315,9 @@ class TumSource(IndexedSource):
         self.has_ground_truth = self.K is not None and any(
             depth is not None and pose is not None for _, _, depth, pose in self._items)
 
+    def _image_path(self, position: int) -> Path:
+        return self._items[position][1]
+
     def _describe(self, position: int) -> str:
         return str(self._items[position][1].relative_to(self.folder))
 

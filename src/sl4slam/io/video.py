@@ -72,6 +72,18 @@ class VideoSource:
     def __len__(self) -> int:
         return self._len
 
+    def image_size(self) -> tuple[int, int] | None:
+        """``(width, height)`` of the frames, from the container (no frame decoded)."""
+        capture = self._open()
+        try:
+            return int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        finally:
+            capture.release()
+
+    def calibration(self) -> np.ndarray | None:
+        """The intrinsics given to the source, or ``None`` (a video file states none)."""
+        return None if self.K is None else self.K.copy()
+
     def _frame(self, index: int, bgr: np.ndarray) -> Frame:
         raw_index = index * self.stride
         return Frame(

@@ -240,6 +240,7 @@ def summarize(result: SLAMResult, config_dict: dict, ate_result: ATEResult | Non
         "memory": {**peak_memory(), "stored_keyframe_bytes": stats.get("stored_bytes", 0),
                    "stored_bytes_per_keyframe": round(stats.get("stored_bytes", 0) / max(1, len(result.keyframes)))},
         "metric_upgrade": stats.get("metric_upgrade", []),
+        **{key: stats[key] for key in ("intrinsics", "metric_depth") if key in stats},
         "config": config_dict,
     }
     if ate_result is not None:
