@@ -188,7 +188,8 @@ def test_progress_outside_a_terminal_is_plain_lines(world: Path, tmp_path: Path)
     lines = [line for line in proc.stderr.splitlines() if line.startswith("sl4slam: ")]
     assert lines and all("submaps" in line and "frames" in line for line in lines)
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    # a line every second submap, and a last one with the final count (a log never ends stale)
-    assert len(lines) == summary["counts"]["submaps"] // 2 + 1
+    # a line every second submap, and a last one with the final count unless the last line had it
+    # already (a log never ends stale)
+    assert summary["counts"]["submaps"] // 2 <= len(lines) <= summary["counts"]["submaps"] // 2 + 1
     assert lines[-1].startswith(f"sl4slam: {summary['counts']['frames']}/") and f"{summary['counts']['submaps']} submaps" in lines[-1]
     assert f"ATE RMSE {format_length(summary['ate']['rmse'])}" in proc.stdout
