@@ -1,8 +1,8 @@
 """Command-line interface: a thin layer over the library.
 
 ``sl4slam run SOURCE --out DIR`` runs the pipeline; ``sl4slam demo`` the synthetic SL(4)-vs-Sim(3)
-comparison; ``sl4slam synth`` writes the synthetic world; ``sl4slam convert`` converts VGGT weights;
-``sl4slam ate`` evaluates a trajectory; ``sl4slam view`` shows a result in the browser; ``sl4slam export``
+comparison; ``sl4slam synth`` writes the synthetic world; ``sl4slam models`` lists the models;
+``sl4slam convert`` converts any model's weights; ``sl4slam ate`` evaluates a trajectory; ``sl4slam view`` shows a result in the browser; ``sl4slam export``
 writes it for COLMAP / nerfstudio / PLY tools; ``sl4slam eval`` / ``sl4slam sweep`` run the paper's
 TUM RGB-D / 7-Scenes protocol. Run flags are generated from the config dataclasses
 (``sl4slam.config``), so every setting, its default and its documentation live in one place.
@@ -237,10 +237,44 @@ def _add_eval_arguments(parser: argparse.ArgumentParser, grid_required: bool) ->
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from .models.vggt.weights import convert_checkpoint
+    from .registry import frontend_entry
+    from .resolve import model_of_weights
 
-    convert_checkpoint(args.src, args.dst, dtype="bf16" if args.bf16 else "fp32")
-    print(f"wrote {args.dst}")
+    if args.model:
+        entry = frontend_entry(args.model)
+    else:
+        entry = model_of_weights(args.src)
+        if entry is None:
+            raise UserError(f"{args.src}: not a checkpoint of a known model (or not found); name it with --model "
+                            "(sl4slam models lists them)")
+    if entry.convert is None:
+        raise UserError(f"{entry.name} has no weights to convert")
+    dtype = "bf16" if args.bf16 else args.dtype
+    entry.convert(args.src, args.dst, dtype)
+    print(f"wrote {args.dst} ({entry.name}, {dtype})")
+    return 0
+
+
+def cmd_models(args: argparse.Namespace) -> int:
+    """Every model a run can name: parameters, licence, default weights and whether they are here."""
+    from .models.hub import cached_locally
+    from .registry import frontend_entries
+
+    rows = [("name", "parameters", "licence", "default weights", "here", "what it is")]
+    for entry in frontend_entries():
+        if entry.weights is None:
+            rows.append((entry.name, "-", "-", "-", "-", entry.description))
+            continue
+        found = cached_locally(entry.weights.repo_id, entry.weights)
+        count = entry.parameters or 0
+        size = f"{count / 1e9:.2f} B" if count >= 1e9 else f"{count / 1e6:.1f} M" if count else "?"
+        rows.append((entry.name, size,
+                     entry.licence.split(" (")[0], entry.weights.repo_id, "yes" if found else "no", entry.description))
+    widths = [max(len(row[k]) for row in rows) for k in range(5)]
+    for row in rows:
+        print("  ".join(cell.ljust(width) for cell, width in zip(row, widths)) + "  " + row[5])
+    print("\nRun one with --model NAME (or --model FILE / hub id: its weights name the model). Weights not here are "
+          "downloaded on first use; licences in full: README.md, Models.")
     return 0
 
 
@@ -322,10 +356,15 @@ def build_parser() -> argparse.ArgumentParser:
                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     _add_eval_arguments(sweep, grid_required=True)
 
-    convert = verbs.add_parser("convert", help="write a .safetensors copy of a VGGT checkpoint")
-    convert.add_argument("src", help="checkpoint (.pt or .safetensors)")
+    models = verbs.add_parser("models", help="list the models: parameters, licence, default weights, whether they are here")
+    models.set_defaults(func=cmd_models)
+
+    convert = verbs.add_parser("convert", help="write a .safetensors copy of a model's checkpoint (any model)")
+    convert.add_argument("src", help="checkpoint (.pt or .safetensors) or hub id")
     convert.add_argument("dst", help="output .safetensors")
-    convert.add_argument("--bf16", action="store_true", help="store the weights as bfloat16")
+    convert.add_argument("--model", help="the checkpoint's model (default: recognized from its tensor names)")
+    convert.add_argument("--dtype", choices=["fp32", "bf16", "fp16"], default="fp32", help="storage precision")
+    convert.add_argument("--bf16", action="store_true", help="same as --dtype bf16")
     convert.set_defaults(func=cmd_convert)
 
     ate_parser = verbs.add_parser("ate", help="ATE RMSE of a TUM trajectory (evo_ape -as)")

@@ -7,8 +7,9 @@ graph the groups it holds. ``sl4slam.resolve`` reads the entries to settle a con
 registered by ``sl4slam.frontend``, ``sl4slam.retrieval`` and ``sl4slam.backend`` (one line each);
 a new model adds one line there (docs/architecture.md, "How to add a model").
 
-A frontend entry may be registered lazily, as ``"module:function"`` returning the entry, so that
-naming a model does not import its code (and torch) until a run or a listing asks for it.
+A frontend entry may be registered lazily, as ``"module:function"`` (or ``"module:function:argument"``
+for one member of a family, e.g. a model size) returning the entry, so that naming a model does not
+import its code (and torch) until a run or a listing asks for it.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ class FrontendEntry:
         parameters: parameters of the full-size model, when it has weights.
         settings: the config section that holds its settings ("model", "sim").
         recognizes: whether a state dict's key names are this model's (``--model FILE``).
+        convert: ``convert(src, dst, dtype)`` writes a ``.safetensors`` copy of a checkpoint of it
+            (``sl4slam convert``; dtype "fp32", "bf16" or "fp16").
     """
 
     name: str
@@ -52,6 +55,7 @@ class FrontendEntry:
     parameters: int | None = None
     settings: str = "model"
     recognizes: Callable[[Mapping[str, Any]], bool] | None = None
+    convert: Callable[[str, str, str], Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -115,7 +119,9 @@ def frontend_entry(name: str) -> FrontendEntry:
                         f"{', '.join(_FRONTENDS)} (sl4slam models lists them), or a model's weights file or hub id")
     if isinstance(entry, str):
         module, _, function = entry.partition(":")
-        entry = getattr(importlib.import_module(module), function)()
+        function, _, argument = function.partition(":")  # "module:function:argument" for a family of models
+        factory = getattr(importlib.import_module(module), function)
+        entry = factory(argument) if argument else factory()
         _FRONTENDS[name] = entry
     return entry
 

@@ -283,6 +283,11 @@ class Aligner(ABC):
         Raises ``ValueError`` when the views share too few usable pixels or the fit degenerates.
         """
 
+    def align_frames(self, pairs: "Sequence[tuple[FrameView, FrameView]]", seed: int) -> Alignment:
+        """``X_a ~ H_a_b X_b`` from several frames the two submaps share (``pairs``: each frame's
+        view in ``a`` and in ``b``). An aligner that only knows one frame uses the first."""
+        return self.align(pairs[0][0], pairs[0][1], seed)
+
     @abstractmethod
     def camera_edge(self, view_a: FrameView, view_b: FrameView) -> Alignment:
         """The weaker measurement that needs no point fit: the frame's two cameras and the median

@@ -1,6 +1,9 @@
 """Frontends: feed-forward reconstruction of a window of frames into one submap, registered by name.
 
 - ``vggt``: our VGGT-1B implementation (``sl4slam.frontend.vggt.VGGTFrontend``).
+- ``da3-small`` ... ``da3-giant-1.1``: Depth Anything 3, every released size
+  (``sl4slam.frontend.da3.DA3Frontend``).
+- ``pi3`` / ``pi3x``: π³ and its successor Pi3X (``sl4slam.frontend.pi3.Pi3Frontend``).
 - ``simulated``: VGGT-like submaps from ground-truth RGB-D with a controlled projective distortion
   and noise (``sl4slam.frontend.simulated.SimulatedFrontend``).
 - ``CachingFrontend`` / ``ReplayFrontend``: record a frontend's outputs and replay them, so the
@@ -20,6 +23,10 @@ from ..types import Frontend
 from .cache import CachingFrontend, ReplayFrontend
 
 register_frontend("sl4slam.frontend.vggt:registry_entry", "vggt")
+for _size in ("small", "base", "large", "large-1.1", "giant", "giant-1.1"):
+    register_frontend(f"sl4slam.frontend.da3:registry_entry:{_size}", f"da3-{_size}")
+for _variant in ("pi3", "pi3x"):
+    register_frontend(f"sl4slam.frontend.pi3:registry_entry:{_variant}", _variant)
 register_frontend("sl4slam.frontend.simulated:registry_entry", "simulated")
 
 

@@ -241,14 +241,21 @@ def registry_entry() -> FrontendEntry:
         submap = resolved.config.submap
         return VGGTFrontend(resolved.config.model, with_points=submap.use_point_head,
                             match_scores=resolved.attention_check, device=resolved.device,
-                            submap_frames=submap.size + 1 + submap.w_loop)
+                            submap_frames=submap.size + submap.overlap + submap.w_loop)
 
     return FrontendEntry(
         name="vggt", build=build, capabilities=VGGTFrontend.capabilities,
         description="VGGT-1B (Wang et al., CVPR 2025): cameras, depth and points of every frame; the paper's model",
         weights=VGGT_WEIGHTS,
         licence="CC BY-NC 4.0 (facebook/VGGT-1B; facebook/VGGT-1B-Commercial is under the VGGT License, commercial use allowed)",
-        parameters=VGGT_PARAMETERS, recognizes=lambda keys: "aggregator.camera_token" in keys)
+        parameters=VGGT_PARAMETERS, recognizes=lambda keys: "aggregator.camera_token" in keys,
+        convert=_convert)
+
+
+def _convert(src: str, dst: str, dtype: str):
+    from ..models.vggt.weights import convert_checkpoint
+
+    return convert_checkpoint(src, dst, dtype=dtype)
 
 
 VGGT_PARAMETERS = 1_190_596_120

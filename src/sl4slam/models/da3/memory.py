@@ -1,0 +1,107 @@
+"""Peak-memory estimate of a Depth Anything 3 forward, and the head chunk that fits a budget.
+
+The estimate adds the tensors alive at the peak, each counted from its shape (S frames of
+``N = 1 + h*w`` tokens of width C at ``H x W`` pixels):
+
+* the weights (float32: the parameters stay float32 in every precision mode);
+* the backbone's kept outputs: four ``2C`` outputs per token and the last one's raw ``[local,
+  global]`` tokens, float32 (:data:`KEPT_WIDTHS` widths of C);
+* the larger of two phases: a backbone block at work (residual stream, norms, qkv, rotated q / k,
+  attention output, the MLP's hidden layer before and after its activation: :data:`BACKBONE_WIDTHS`
+  widths of C per token, at the compute precision), or the head decoding a chunk of frames
+  (:data:`HEAD_IMAGE_MAPS` maps of ``features / 2`` channels at the image size and
+  :data:`HEAD_FINE_MAPS` maps of ``features`` channels at 8x the patch grid per frame, float32;
+  the ray branch, when it runs, doubles the fine maps);
+* the depth and confidence of every frame, and on a CPU the interpreter and libraries
+  (:data:`CPU_RUNTIME_BYTES`).
+
+The multipliers were set from the peak resident sizes of 17-frame forwards at 504x378 (head chunk 8,
+float32, 2 threads; ``benchmarks/bench_da3.py --timing``, ``benchmarks/results/da3.md``) and rounded
+up: the head phase is the peak there, and the estimate lies 9-18 % above each size's measured peak
+(Small 1.55 vs 1.37 GiB, Base 2.83 vs 2.50, Large 5.34 vs 4.54, Giant 9.04 vs 8.29).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from dataclasses import dataclass
+
+from ...errors import UserError
+from .config import DA3Config
+
+KEPT_WIDTHS = 10.0
+BACKBONE_WIDTHS = 16.0
+HEAD_IMAGE_MAPS = 1.5
+HEAD_FINE_MAPS = 3.3
+CPU_RUNTIME_BYTES = 512 * 2**20
+GIB = 2**30
+
+
+@functools.lru_cache(maxsize=16)
+def _parameter_bytes(config_json: str) -> int:
+    from .model import count_parameters
+
+    return 4 * count_parameters(DA3Config.from_dict(json.loads(config_json)))
+
+
+def estimate_peak_bytes(config: DA3Config, frames: int, height: int, width: int, head_chunk: int = 8,
+                        half_precision: bool = False, device_type: str = "cpu", rays: bool = False) -> int:
+    """Upper estimate of one forward's peak for ``frames`` images ``height`` x ``width`` (CPU: resident
+    set size; CUDA: allocated memory, weights included); ``rays``: the ray branch runs too."""
+    patch = config.patch_size
+    rows, cols = height // patch, width // patch
+    token_width = frames * (1 + rows * cols) * config.embed_dim
+    kept = 4 * KEPT_WIDTHS * token_width
+    backbone = (2 if half_precision else 4) * BACKBONE_WIDTHS * config.mlp_ratio / 4.0 * token_width
+    chunk = min(max(int(head_chunk), 1), frames)
+    fine_maps = HEAD_FINE_MAPS * (2 if rays else 1)
+    per_frame_head = 4 * (HEAD_IMAGE_MAPS * config.head_features / 2 * height * width
+                          + fine_maps * config.head_features * (8 * rows) * (8 * cols))
+    outputs = frames * height * width * 4 * 2
+    runtime = CPU_RUNTIME_BYTES if device_type == "cpu" else 0
+    return int(runtime + _parameter_bytes(config.to_json()) + kept + max(backbone, chunk * per_frame_head) + outputs)
+
+
+@dataclass(frozen=True)
+class MemoryPlan:
+    """``head_chunk_frames`` decoded at once, and the estimated peak with it."""
+
+    head_chunk_frames: int
+    estimated_peak_bytes: int
+
+
+def largest_fitting_frames(config: DA3Config, budget_bytes: int, height: int, width: int,
+                           half_precision: bool = False, device_type: str = "cpu", limit: int = 4096,
+                           rays: bool = False) -> int:
+    """Largest frame count whose forward (head one frame at a time) fits ``budget_bytes`` (0: none)."""
+    def fits(frames: int) -> bool:
+        peak = estimate_peak_bytes(config, frames, height, width, 1, half_precision, device_type, rays)
+        return peak <= budget_bytes
+
+    if not fits(1):
+        return 0
+    low, high = 1, limit
+    while low < high:
+        middle = (low + high + 1) // 2
+        low, high = (middle, high) if fits(middle) else (low, middle - 1)
+    return low
+
+
+def plan_memory(config: DA3Config, budget_gb: float, frames: int, height: int, width: int, max_chunk: int = 8,
+                half_precision: bool = False, device_type: str = "cpu", rays: bool = False) -> MemoryPlan:
+    """The largest head chunk (at most ``max_chunk``) whose forward fits ``budget_gb`` GiB.
+
+    Raises:
+        UserError: not even one frame at a time fits; names the largest submap that does.
+    """
+    budget = int(budget_gb * GIB)
+    for chunk in range(min(max_chunk, frames), 0, -1):
+        peak = estimate_peak_bytes(config, frames, height, width, chunk, half_precision, device_type, rays)
+        if peak <= budget:
+            return MemoryPlan(chunk, peak)
+    need = estimate_peak_bytes(config, frames, height, width, 1, half_precision, device_type, rays)
+    largest = largest_fitting_frames(config, budget, height, width, half_precision, device_type, rays=rays)
+    raise UserError(f"a submap of {frames} frames at {width}x{height} needs about {need / GIB:.1f} GiB with Depth "
+                    f"Anything 3 but --max-memory is {budget_gb:g} GiB; the largest submap that fits is {largest} "
+                    "frames: lower --submap-size, raise --max-memory, or use a smaller model size")
