@@ -60,6 +60,7 @@ def main() -> None:
     parser.add_argument("--submaps", type=int, default=300)
     parser.add_argument("--retrieval", default="orb")
     parser.add_argument("--perspective", type=float, default=0.1)
+    parser.add_argument("--overlap", type=int, default=1, help="shared frames between submaps (the recorded figures: 1)")
     parser.add_argument("--out", default=str(HERE / "results" / "pipeline.md"))
     args = parser.parse_args()
 
@@ -76,6 +77,7 @@ def main() -> None:
     config.sim.perspective = args.perspective
     config.sim.distort_first_submap = False
     config.backend.graph = "submap"  # the graph the recorded figures were measured on
+    config.submap.overlap = args.overlap  # ... with one shared frame (the frames per forward set the cost)
     source = LapSource(base, laps=10_000)
     pipeline = SLAMPipeline(config)
     keyframe_seconds: list[float] = []
@@ -129,7 +131,7 @@ def main() -> None:
         "",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, 24 GiB, no GPU; "
         f"Python {platform.python_version()}. Date: {datetime.date.today()}.",
-        f"Command: `python benchmarks/bench_pipeline.py --submaps {args.submaps} --retrieval {args.retrieval}`.",
+        f"Command: `python benchmarks/bench_pipeline.py --submaps {args.submaps} --retrieval {args.retrieval} --overlap {args.overlap}`.",
         f"Synthetic world at {W}x{H}, replayed lap after lap; submaps of 16 new keyframes (17 frames, 18 with a "
         f"loop frame); simulated frontend (perspective 0.1, noise and outlier blobs at their defaults); "
         f"{args.retrieval} retrieval; SL(4) backend. {len(per_submap)} submaps, {len(pipeline.keyframes)} keyframes, "

@@ -103,7 +103,7 @@ def test_compact_reads_back_the_full_points_mask_colours_and_confidence(run) -> 
         np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
         A, B = a.load(), b.load()
         np.testing.assert_array_equal(A.mask, B.mask)
-        assert B.mask.sum() > 0.2 * B.mask.size
+        assert B.mask.sum() > 0.1 * B.mask.size  # not vacuous (a frame facing a far wall keeps fewer)
         assert not B.points_world[~B.mask].any() and not B.depth[~B.mask].any()
         # the world points: the full file's, and the run's own, within the stated tolerance of the depth
         depth = np.abs(_depth_along_axis(A.points_world[A.mask], a.T_world_cam))

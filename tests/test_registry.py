@@ -62,7 +62,7 @@ def test_the_composition_root_builds_every_stage_from_the_resolved_config() -> N
     config.false_loops.rate = 0.3
     stages = build_stages(resolve(config))
     assert stages.frontend.name == "simulated" and stages.backend.design == "keyframe"
-    assert stages.aligner.model == "calibration" and stages.retrieval.name == "orb+false-loops"
+    assert stages.aligner.model == "select" and stages.retrieval.name == "orb+false-loops"
     config.retrieval.kind = "none"
     assert build_stages(resolve(config)).retrieval is None
 

@@ -166,6 +166,7 @@ def test_a_submap_the_graph_cannot_take_even_as_a_new_segment_is_dropped(small_w
     """The second failure, inside the new segment's own update, used to escape as a traceback."""
     config = small_config()
     config.retrieval.kind = "none"
+    config.backend.graph = "submap"  # the design of the broken graph below, for a like-for-like reference
     _, reference = run(small_world, config)
     pipeline, result = run(small_world, config, backend=SubmapBackend(BrokenNodeGraph(config.backend, fail_at=3)))
     dropped = [e for e in result.edges if e.kind == "segment" and e.submap_to == 3]
@@ -184,6 +185,7 @@ def test_a_final_polish_that_fails_keeps_isam2s_map(small_world: Path, tmp_path:
     estimate, its outputs written, and a note saying so."""
     config = small_config()
     config.retrieval.kind = "none"
+    config.upgrade.mode = "off"  # the final map is then iSAM2's estimate itself, no final upgrade on top
     pipeline, _ = run(small_world, config)
     snapshot = pipeline.snapshot()
     original = pipeline.backend.world_estimate

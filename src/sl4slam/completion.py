@@ -33,7 +33,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .config import UpgradeConfig
-from .geometry import decompose_projection, normalize_sl4
+from .geometry import normalize_sl4, projection_intrinsics
 from .upgrade import intrinsic_constraint_residuals
 
 
@@ -94,6 +94,8 @@ class BendingFrame:
 
     T: np.ndarray
     centroid: np.ndarray
+    T_inv: np.ndarray
+    """``T``'s inverse ``(4, 4)``, computed once for every bending."""
 
     @classmethod
     def of(cls, centre_b: np.ndarray, points_b: np.ndarray) -> "BendingFrame":
@@ -103,7 +105,7 @@ class BendingFrame:
         T = np.eye(4)
         T[:3, :3] /= depth
         T[:3, 3] = -centre_b / depth
-        return cls(T, offsets.mean(axis=0) / depth)
+        return cls(T, offsets.mean(axis=0) / depth, np.linalg.inv(T))
 
     def bending(self, perspective: np.ndarray) -> np.ndarray:
         """``G`` ``(4, 4)`` for the perspective row ``perspective`` ``(3,)``."""
@@ -111,12 +113,12 @@ class BendingFrame:
         bend = np.eye(4)
         bend[3, :3] = p
         bend[3, 3] = 1.0 - p @ self.centroid
-        return np.linalg.inv(self.T) @ bend @ self.T
+        return self.T_inv @ bend @ self.T
 
 
 def _camera_residuals(P: np.ndarray, principal_points: np.ndarray, focal: float, focal_weight: float) -> np.ndarray:
     """``(M, 5)`` skew, aspect, principal point (``intrinsic_constraint_residuals``) and weighted log focal ratio."""
-    K, _, _ = decompose_projection(P)
+    K = projection_intrinsics(P)
     constraints = intrinsic_constraint_residuals(K, principal_points)
     log_focal = focal_weight * np.log(np.sqrt(K[:, 0, 0] * K[:, 1, 1]) / focal)
     return np.concatenate([constraints, log_focal[:, None]], axis=1)

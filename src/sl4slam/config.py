@@ -116,6 +116,12 @@ class SubmapConfig(Section):
 
     size: int = 16
     """New keyframes per submap, w. Paper evaluates 8/16/32 (tables use 32); reference CLI: 16."""
+    overlap: int = 2
+    """Frames shared by consecutive submaps: the last ``overlap`` keyframes of a submap open the next
+    one, and the link between the two uses all of them (``sl4slam.alignment.shared``). Each costs one
+    more frame per forward. VGGT-SLAM shares one ("only default of 1 supported" in its code); two
+    let the "select" link judge the 15-DOF fit on a frame it was not fitted on and the loop gate
+    measure the links' real noise (benchmarks/results/levers.md)."""
     w_loop: int = 1
     """Loop frames appended to a submap (paper: 1)."""
     tau_conf: float = 25.0
@@ -126,6 +132,11 @@ class SubmapConfig(Section):
     def validate(self) -> None:
         super().validate()
         self._require("size", self.size >= 1, "at least 1")
+        # the next submap opens with this one's newest keyframes: at most all of them (a small submap
+        # with the default overlap then shares every new keyframe, never an older shared frame again)
+        self._require("overlap", 1 <= self.overlap <= max(self.size, 1),
+                      f"at least 1 and at most the submap size ({self.size}): the shared frames are the newest keyframes "
+                      "of the submap before")
         self._require("w_loop", self.w_loop >= 0, ">= 0")
         # 100 would drop every pixel (an empty map); the percentile is over the whole submap
         self._require("tau_conf", 0 <= self.tau_conf < 100, "a percentile in [0, 100)")
@@ -141,11 +152,11 @@ class AlignmentConfig(Section):
         "model": "--alignment", "min_points": "--alignment-min-points",
         "min_inlier_ratio": "--alignment-min-inlier-ratio", "max_condition": "--alignment-max-condition"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
-        "model": ("auto", "sl4", "calibration", "hybrid", "sim3-points", "sim3-cameras"),
+        "model": ("auto", "sl4", "calibration", "hybrid", "select", "sim3-points", "sim3-cameras"),
         "planar_model": ("auto", "calibration-scale", "camera-constrained")}
     advanced: ClassVar[frozenset[str]] = frozenset({
         "max_correspondences", "max_points", "max_refit_points", "planarity_threshold", "min_relief", "planar_model",
-        "planar_support_margin", "planar_fit_min_inlier_ratio", "hybrid_margin",
+        "planar_support_margin", "planar_fit_min_inlier_ratio", "hybrid_margin", "select_confidence",
         "near_planar_threshold", "refit", "refit_candidates",
         "hypothesis_batch", "early_stop_spread", "preemptive_points", "preemptive_keep",
         "preemptive_min_keep", "refit_rounds", "refit_min_gain", "small_set",
@@ -158,8 +169,10 @@ class AlignmentConfig(Section):
     the median depth ratio), "calibration" (VGGT-SLAM 2.0: the shared frame's two cameras, their
     intrinsics and the median depth ratio, no free projective terms; ``calibration_scale_link``),
     "hybrid" (that link, or the 15-DOF fit where it explains the frame ``hybrid_margin`` times
-    better), or "auto": "sl4" for the SL(4) submap graph, "calibration" for the keyframe graph, "sim3-cameras"
-    for the Sim(3) graph. A Sim(3) graph needs a Sim(3) model."""
+    better), "select" (that link or the 15-DOF fit, whichever predicts the shared frames it was not
+    fitted on better: ``sl4slam.alignment.select``; needs two or more shared frames, else the link),
+    or "auto": "select" for the keyframe graph, "sl4" for the SL(4) submap graph, "sim3-cameras" for
+    the Sim(3) graph. A Sim(3) graph needs a Sim(3) model."""
     ransac_iterations: int = 300
     """Most RANSAC hypotheses (paper: 300, always drawn in full there)."""
     ransac_confidence: float = 0.999
@@ -193,6 +206,11 @@ class AlignmentConfig(Section):
     median transfer error on the shared frame is more than this many times the fit's. Measured on the
     synthetic world (benchmarks/bench_keyframe_graph.py): 1.2-3.8 under the vggt profile's depth warps,
     4.3-16 under a relative perspective distortion of 0.1 (non-degenerate frames)."""
+    select_confidence: float = 0.95
+    """"select" alignment: confidence at which the 15-DOF fit must predict the held-out shared
+    frames better than the calibration-and-scale link (one-sided paired t-test over the held-out
+    frames, ``sl4slam.alignment.select``); below it the link, the model that assumes less, is kept.
+    0.95: the conventional level, not tuned."""
     planar_model: str = "auto"
     """What measures a degenerate shared frame: "calibration-scale" (its two cameras and depth
     ratio: VGGT-SLAM 2.0's link, immune to depth warps, blind to a relative projective
@@ -276,6 +294,7 @@ class AlignmentConfig(Section):
         self._require("planarity_threshold", 0 <= self.planarity_threshold < 1, "in [0, 1)")
         self._require("min_relief", 0 <= self.min_relief < 1, "in [0, 1)")
         self._require("hybrid_margin", self.hybrid_margin >= 1, "at least 1")
+        self._require("select_confidence", 0.5 <= self.select_confidence < 1, "in [0.5, 1)")
         self._require("planar_support_margin", self.planar_support_margin >= 1, ">= 1")
         self._require("planar_fit_min_inlier_ratio", 0 <= self.planar_fit_min_inlier_ratio <= 1, "in [0, 1]")
         self._require("near_planar_threshold", self.planarity_threshold <= self.near_planar_threshold <= 1,
@@ -594,6 +613,11 @@ class SimulatorConfig(Section):
     low-frequency; AbsRel 2-4 % indoors). 0: none."""
     depth_warp_length: float | None = None
     """Correlation length of the depth warp field as a fraction of the image width."""
+    focal_consistency: float = -1.0
+    """Share of the focal error's variance that belongs to the frame itself; -1: the same as
+    ``frame_consistency``. 0 draws each frame's focal length afresh in every window (VGGT-SLAM's
+    premise of an uncalibrated model whose focal wanders between windows; where a known calibration
+    pays most)."""
     frame_consistency: float | None = None
     """Share of the variance of a frame's focal error and depth warp that belongs to the frame
     itself, the same in every submap that contains it; the rest is drawn per submap. VGGT's depth
@@ -661,6 +685,8 @@ class SimulatorConfig(Section):
             ("unrelated_overlap", 0 <= self.unrelated_overlap <= 1, "in [0, 1]"),
             ("unrelated_jitter", self.unrelated_jitter >= 0, ">= 0"),
             ("frame_consistency", 0 <= self.frame_consistency <= 1, "in [0, 1]"),
+            ("focal_consistency", self.focal_consistency == -1 or 0 <= self.focal_consistency <= 1,
+             "-1 (as --sim-frame-consistency) or in [0, 1]"),
             ("outlier_fraction", 0 <= self.outlier_fraction < 1, "in [0, 1)"),
             ("outlier_blob_px", self.outlier_blob_px > 0, "> 0"),
             ("outlier_magnitude", self.outlier_magnitude >= 0, ">= 0"),
@@ -817,7 +843,8 @@ class SourceConfig(Section):
     ``sl4slam.io.open_source``), and what else it knows that the run can use."""
 
     section: ClassVar[str] = "source"
-    flag_names: ClassVar[dict[str, str]] = {"intrinsics": "--intrinsics", "metric_depth": "--metric-depth"}
+    flag_names: ClassVar[dict[str, str]] = {"intrinsics": "--intrinsics", "metric_depth": "--metric-depth",
+                                            "intrinsics_to_model": "--intrinsics-to-model"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {"metric_depth": ("off", "sensor")}
 
     stride: int = 1
@@ -830,6 +857,9 @@ class SourceConfig(Section):
     RGB-D and 7-Scenes), or "" (none: the model's guess, the paper's setting). Each frame's points
     are then rebuilt along the known camera's rays from the model's depth, the links between
     submaps carry no calibration term, and the metric upgrade is skipped (``sl4slam.intrinsics``)."""
+    intrinsics_to_model: bool = True
+    """Also give the known intrinsics to a model that takes a calibration as input (Pi3X, Depth
+    Anything 3); off: the points are rebuilt along the known rays only (to tell the two effects apart)."""
     metric_depth: str = "off"
     """"sensor": scale each submap (points and camera translations) by the median ratio of the
     sensor's depth to the model's over its confident pixels with a valid sensor depth (an RGB-D
@@ -995,12 +1025,13 @@ class UpgradeConfig(Section):
     mode: str = "auto"
     """"on": estimate the upgrade at the end of a run and apply it to every node, pose and map point
     when it is well conditioned and clearly better; "off": leave the map in the first submap's
-    projective frame; "auto": on for the SL(4) submap graph, whose 15-DOF links make the whole map
-    inherit the first submap's projective distortion (median ATE with / without 0.075 on the
-    synthetic world and 0.021 on TUM fr1/desk at perspective 0.1; no run worse than 1.02x), off for
-    the keyframe graph, whose links carry no such common distortion (forced: median 0.84-1.10,
-    single runs up to 1.21x worse), and for the Sim(3) graph, where it is almost always skipped
-    anyway (benchmarks/results/upgrade_pipeline.md)."""
+    projective frame; "auto": on where links may be 15-DOF, which make the whole map inherit the
+    first submap's projective distortion: the SL(4) submap graph (median ATE with / without 0.075 on
+    the synthetic world and 0.021 on TUM fr1/desk at perspective 0.1; no run worse than 1.02x;
+    benchmarks/results/upgrade_pipeline.md) and the keyframe graph with "select" links
+    (benchmarks/results/levers.md); off for calibration links, which carry no such common distortion
+    (forced: median 0.84-1.10, single runs up to 1.21x worse), and for the Sim(3) graph, where it is
+    almost always skipped anyway."""
     focal_model: str = "shared"
     """"shared": one focal length for every keyframe (one physical camera films the video; the
     strongest constraint, with the fewest critical motions: Sturm, CVPR 1997, vs. varying focal,

@@ -8,6 +8,8 @@ are vectorized over leading batch dimensions and use float64 unless stated.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from .errors import UserError
@@ -58,6 +60,15 @@ def pixel_grid(height: int, width: int) -> np.ndarray:
     return np.stack([u, v, np.ones_like(u)], axis=-1)
 
 
+@lru_cache(maxsize=8)
+def _pixel_rays(height: int, width: int) -> np.ndarray:
+    """``pixel_grid(height, width)`` as read-only ``(H * W, 3)`` float32 rows: every unprojection of a
+    grid size uses the same rays, and building them costs more than the unprojection itself."""
+    rays = pixel_grid(height, width).reshape(height * width, 3).astype(np.float32)
+    rays.flags.writeable = False
+    return rays
+
+
 def unproject_depth(depth: np.ndarray, K: np.ndarray, T_cam_ref: np.ndarray | None = None) -> np.ndarray:
     """Back-project depth maps to 3D points.
 
@@ -79,7 +90,7 @@ def unproject_depth(depth: np.ndarray, K: np.ndarray, T_cam_ref: np.ndarray | No
         T_ref_cam = se3_inverse(T_cam_ref)
         M = T_ref_cam[:, :3, :3] @ M
         offset = T_ref_cam[:, :3, 3]
-    rays = pixel_grid(H, W).reshape(H * W, 3).astype(np.float32)
+    rays = _pixel_rays(H, W)
     X = np.einsum("nj,sij->sni", rays, M.astype(np.float32), optimize=True)  # (S, HW, 3)
     X *= depth.reshape(S, H * W, 1).astype(np.float32, copy=False)
     X += offset[:, None, :].astype(np.float32)
@@ -137,6 +148,27 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
         T_world_cam: ``(..., 4, 4)`` proper rigid camera pose (camera-to-world) in P's frame.
         C: ``(..., 3)`` camera centre, the right null vector of P.
     """
+    P, U, Q = _positive_rq(P)
+    K = U / U[..., 2:3, 2:3]
+    M = P[..., :3, :3]
+    C = -np.einsum("...ij,...j->...i", np.linalg.inv(M), P[..., :3, 3])
+    T_world_cam = np.zeros(P.shape[:-2] + (4, 4))
+    T_world_cam[..., :3, :3] = np.swapaxes(Q, -1, -2)
+    T_world_cam[..., :3, 3] = C
+    T_world_cam[..., 3, 3] = 1.0
+    return K, T_world_cam, C
+
+
+def projection_intrinsics(P: np.ndarray) -> np.ndarray:
+    """``K`` ``(..., 3, 3)`` of :func:`decompose_projection` (the same values) without the pose, for
+    fits that read only the intrinsics of many cameras."""
+    _, U, _ = _positive_rq(P)
+    return U / U[..., 2:3, 2:3]
+
+
+def _positive_rq(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``P`` ``(..., 3, 4)`` float64 with the sign that makes its rotation proper, and the RQ
+    decomposition ``U Q`` of its left 3x3 block with a positive diagonal of ``U``."""
     P = np.asarray(P, dtype=np.float64)
     M = P[..., :3, :3]
     # P and -P are the same camera; choose the sign that makes the rotation proper.
@@ -146,15 +178,7 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     U, Q = rq_decomposition(M)
     # Make the diagonal of U positive: U D, D Q with D = diag(sign(U_ii)), D^2 = I.
     D = np.where(np.diagonal(U, axis1=-2, axis2=-1) < 0, -1.0, 1.0)
-    U = U * D[..., None, :]
-    Q = Q * D[..., :, None]
-    K = U / U[..., 2:3, 2:3]
-    C = -np.einsum("...ij,...j->...i", np.linalg.inv(M), P[..., :3, 3])
-    T_world_cam = np.zeros(P.shape[:-2] + (4, 4))
-    T_world_cam[..., :3, :3] = np.swapaxes(Q, -1, -2)
-    T_world_cam[..., :3, 3] = C
-    T_world_cam[..., 3, 3] = 1.0
-    return K, T_world_cam, C
+    return P, U * D[..., None, :], Q * D[..., :, None]
 
 
 COLLINEAR_TOLERANCE = 1e-6

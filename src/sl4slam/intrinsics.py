@@ -164,7 +164,9 @@ def on_grid(K: np.ndarray, image_to_grid: np.ndarray) -> np.ndarray:
 
 
 def focal_ratios(K_model: np.ndarray, K_known: np.ndarray) -> np.ndarray:
-    """``(S,)`` the model's focal over the known one, ``sqrt(fx fy)`` each (both on the grid)."""
-    model = np.sqrt(K_model[:, 0, 0] * K_model[:, 1, 1])
+    """``(S,)`` the model's focal over the known one, ``sqrt(fx fy)`` each (both on the grid); NaN
+    where the model's focal lengths are not both positive (no focal to compare)."""
+    product = K_model[:, 0, 0] * K_model[:, 1, 1]
+    model = np.sqrt(np.where(product > 0, product, np.nan))
     known = np.sqrt(K_known[:, 0, 0] * K_known[:, 1, 1])
     return model / known

@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from .backend import Backend
+from .backend.evidence import NoiseScale
 from .config import AlignmentConfig, LoopConfig
 from .edges import edge_problem, is_camera_link
 from .types import Aligner, Alignment, FrameView
@@ -185,7 +186,8 @@ class LoopVerifier:
     """
 
     def __init__(self, config: LoopConfig, alignment_config: AlignmentConfig, aligner: Aligner, backend: Backend,
-                 information: Callable[[Alignment], np.ndarray], attention: bool = False) -> None:
+                 information: Callable[[Alignment], np.ndarray], attention: bool = False,
+                 noise_scale: "NoiseScale | None" = None) -> None:
         self.config = config
         self.alignment_config = alignment_config
         self.aligner = aligner
@@ -193,6 +195,7 @@ class LoopVerifier:
         self.information = information
         self.attention = bool(attention)
         self.threshold = chi2_threshold(config, backend.dim)
+        self.noise_scale = noise_scale
 
     def inlier_gate(self, odometry_ratios: Sequence[float]) -> float:
         """Inlier ratio a loop alignment must reach: ``min_inlier_ratio``, or half the median ratio
@@ -240,8 +243,11 @@ class LoopVerifier:
                 return LoopDecision(False, problem, alignment, checks=checks)
         information = self.information(alignment)
         if self.config.verify_graph:
-            distance = self.backend.loop_chi2(old_submap, new_submap, alignment.H, information, frames=frames)
+            scale = self.noise_scale.value if self.noise_scale is not None else 1.0
+            distance = self.backend.loop_chi2(old_submap, new_submap, alignment.H, information, frames=frames) / scale
             checks["chi2"] = distance
+            if scale != 1.0:
+                checks["noise_scale"] = scale
             if not distance <= self.threshold:
                 return LoopDecision(False, f"it disagrees with the map (chi-square {distance:.3g} > {self.threshold:.3g})",
                                     alignment, information, checks)

@@ -103,8 +103,7 @@ class MetricFrame:
         """The metric frame of the map so far in ``submap_id``'s segment (its keyframes under iSAM2's
         current estimate)."""
         world = self.backend.world_estimate()
-        members = running_members(self.segment_members(world, keyframes).get(self.backend.segment_of(submap_id), []),
-                                  self.config.running_keyframes)
+        members = self._running_keyframes(world, keyframes, self.backend.segment_of(submap_id))
         if len(members) < self.config.min_keyframes:
             return RunningFrame(None, problem=f"too few keyframes for a running upgrade ({len(members)})")
         try:
@@ -154,9 +153,25 @@ class MetricFrame:
             members.setdefault(int(segment), []).append(keyframe)
         return members
 
+    def _running_keyframes(self, world: WorldEstimate, keyframes: Sequence[StoredKeyframe], segment: int) -> list[StoredKeyframe]:
+        """``running_members`` of segment ``segment``'s keyframes placed in ``world`` (the same list as
+        ``running_members(segment_members(world, keyframes)[segment], running_keyframes)``), found with
+        array operations on the keyframes' submap ids: this runs for every completed link, and the
+        keyframes grow with the map while the members stay at most ``running_keyframes``."""
+        ids = np.fromiter((k.submap_id for k in keyframes), dtype=np.int64, count=len(keyframes))
+        placed = np.isin(ids, np.fromiter(world.H_world_submap, dtype=np.int64, count=len(world.H_world_submap)))
+        candidates = np.flatnonzero(placed)
+        candidates = candidates[self.backend.segments_of(ids[candidates]) == segment]
+        return [keyframes[i] for i in candidates[running_picks(len(candidates), self.config.running_keyframes)]]
+
     def estimate(self, members: Sequence[StoredKeyframe], world: WorldEstimate) -> MetricUpgrade:
         """``sl4slam.upgrade.estimate_metric_upgrade`` of these keyframes' cameras in ``world``."""
-        return estimate_metric_upgrade(world_cameras(members, world.H_world_submap, world.H_world_keyframe),
+        # only the members' transforms: world_cameras inverts every transform it is given
+        submaps = {k.submap_id for k in members}
+        frames = {k.frame_index for k in members}
+        H_world_submap = {s: H for s, H in world.H_world_submap.items() if s in submaps}
+        H_world_keyframe = {f: H for f, H in world.H_world_keyframe.items() if f in frames}
+        return estimate_metric_upgrade(world_cameras(members, H_world_submap, H_world_keyframe),
                                        np.stack([k.principal_point for k in members]), self.config,
                                        image_sizes=np.array([k.shape[::-1] for k in members]))
 
@@ -165,9 +180,15 @@ def running_members(members: Sequence[StoredKeyframe], count: int) -> list[Store
     """At most ``count`` of ``members`` (in time order): the newest half of them, where the new link
     is, and the rest spread evenly over the older keyframes (``UpgradeConfig.running_keyframes``)."""
     members = list(members)
-    if len(members) <= count:
-        return members
+    return [members[i] for i in running_picks(len(members), count)]
+
+
+def running_picks(num_members: int, count: int) -> np.ndarray:
+    """Indices ``(k,)`` ascending, ``k <= count``, of the members :func:`running_members` keeps out of
+    ``num_members`` in time order."""
+    if num_members <= count:
+        return np.arange(num_members)
     newest = count - count // 2
-    older = members[:-newest]
-    picks = np.unique(np.linspace(0, len(older) - 1, count - newest).round().astype(int))
-    return [older[i] for i in picks] + members[-newest:]
+    older = num_members - newest
+    picks = np.unique(np.linspace(0, older - 1, count - newest).round().astype(int))
+    return np.concatenate([picks, np.arange(older, num_members)])

@@ -40,7 +40,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from .backend import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
-from .backend.evidence import edge_information
+from .backend.evidence import NoiseScale, edge_information, link_scatter
 from .compose import _BUILD, build_stages
 from .config import SLAMConfig, SourceConfig
 from .edges import EdgeReport, camera_problem, edge_problem
@@ -71,8 +71,8 @@ class SubmapInput:
 
     Attributes:
         submap_id: its id.
-        frames: ``[shared frame] + new keyframes + loop frames`` (no shared frame for a first submap).
-        first_new: slot of the first new keyframe (0 or 1).
+        frames: ``shared frames + new keyframes + loop frames`` (no shared frame for a first submap).
+        first_new: slot of the first new keyframe (the number of shared frames).
         num_new: number of new keyframes.
         loops: the retrieved candidates whose loop frame follows the new keyframes, in order.
         unreadable: candidates whose loop frame could not be read again, with the reason (rejected
@@ -90,8 +90,12 @@ class SubmapInput:
 
     @property
     def shared(self) -> Frame | None:
-        """The frame shared with the previous submap (``None`` for a first submap)."""
+        """The first frame shared with the previous submap (``None`` for a first submap)."""
         return self.frames[0] if self.first_new else None
+
+    def opening_slots(self, overlap: int) -> range:
+        """Slots of the frames that open the next submap: the last ``overlap`` of its keyframes."""
+        return range(max(0, self.last_slot + 1 - overlap), self.last_slot + 1)
 
     @property
     def new_slots(self) -> range:
@@ -117,7 +121,8 @@ class DenseSubmap:
         T_cam_submap: ``(S, 4, 4)`` float64 its extrinsics.
         mask: ``(S, H, W)`` confident pixels (``SubmapConfig.tau_conf``).
         levels: the submap's confidence quantiles (``sl4slam.submap.confidence_levels``).
-        views: ``{slot: FrameView}`` for the frames that are aligned (points at full precision).
+        views: ``{slot: FrameView}`` for the frames that are aligned (points at full precision): the
+            shared frames, the frames that open the next submap and the loop frames.
     """
 
     prediction: SubmapPrediction
@@ -192,8 +197,9 @@ class SLAMPipeline:
             raise UserError(f"the {self.aligner.model} aligner measures projective transforms, which a "
                             f"{self.backend.kind} graph cannot hold; use a Sim(3) alignment model")
         attention = self.resolved.attention_check and self.frontend.capabilities.scores_pairs
+        self.noise_scale = NoiseScale()  # how much the edges understate their noise (several shared frames tell)
         self.loop_verifier = LoopVerifier(self.config.loops, self.config.alignment, self.aligner, self.backend,
-                                          self.edge_information, attention=attention)
+                                          self.edge_information, attention=attention, noise_scale=self.noise_scale)
         self.metric_frame = MetricFrame(self.config.upgrade, self.backend, self.resolved.metric_upgrade,
                                         self.resolved.complete_links)
         self.selector = KeyframeSelector(self.config.keyframes)
@@ -213,9 +219,9 @@ class SLAMPipeline:
         self.stop_requested = False
         self._failures_in_a_row = 0
         self._gt: dict[int, np.ndarray] = {}
-        self._shared: Frame | None = None  # the next submap's shared frame: the last keyframe of the last accepted submap
-        self._last_stored: Frame | None = None  # the last keyframe the graph holds
-        self._shared_view: FrameView | None = None  # ... at full precision, as its submap reconstructed it
+        self._shared: list[Frame] = []  # the next submap's shared frames: the last keyframes of the last accepted submap
+        self._last_stored: list[Frame] = []  # the last keyframes the graph holds
+        self._shared_views: dict[int, FrameView] = {}  # ... at full precision, as their submap reconstructed them
         self._source: FrameSource | None = None
         self._frames_read = 0
         self.known_intrinsics: KnownIntrinsics | None = None  # set by consume() from the source
@@ -290,6 +296,12 @@ class SLAMPipeline:
         return is_keyframe
 
     @property
+    def _model_takes_intrinsics(self) -> bool:
+        """The known intrinsics go to the model too (one that accepts them, unless switched off)."""
+        return (self.known_intrinsics is not None and self.frontend.capabilities.accepts_intrinsics
+                and self.config.source.intrinsics_to_model)
+
+    @property
     def num_loops(self) -> int:
         return sum(1 for e in self.edges if e.kind == "loop" and e.accepted)
 
@@ -314,7 +326,7 @@ class SLAMPipeline:
         if self.retrieval is not None and self.config.submap.w_loop > 0:
             proposed = self.retrieval.query(list(new_frames), submap_id, self.config.submap.w_loop)
             candidates = [c for c in proposed[: self.config.submap.w_loop] if c.match_frame in self._by_frame]
-        shared = [self._shared] if self._shared is not None else []
+        shared = list(self._shared)
         frames, loops, unreadable = shared + list(new_frames), [], []
         for candidate in candidates:
             try:
@@ -329,7 +341,7 @@ class SLAMPipeline:
     def reframe(self, work: SubmapInput) -> SubmapInput:
         """``work`` with the current shared frame (after the submap before it was dropped): the same
         new keyframes and loop frames, so that the retrieval is not asked again."""
-        shared = [self._shared] if self._shared is not None else []
+        shared = list(self._shared)
         return SubmapInput(work.submap_id, shared + work.frames[work.first_new:], len(shared), work.num_new,
                            work.loops, work.unreadable, dict(work.seconds))
 
@@ -339,7 +351,7 @@ class SLAMPipeline:
         pairs = self._match_pairs(work)
         if pairs:  # only frontends asked for attention scores need to know the keyword
             keywords["match_pairs"] = pairs
-        if self.known_intrinsics is not None and self.frontend.capabilities.accepts_intrinsics:
+        if self._model_takes_intrinsics:
             keywords["intrinsics"] = np.repeat(self.known_intrinsics.K[None], len(work.frames), axis=0)
         start = time.perf_counter()
         try:
@@ -362,7 +374,7 @@ class SLAMPipeline:
             raise outcome.error  # its line, at once
         if outcome.problem is None:
             self._failures_in_a_row = 0
-            self._shared = work.frames[work.last_slot]
+            self._shared = [work.frames[slot] for slot in work.opening_slots(self.config.submap.overlap)]
             start = time.perf_counter()
             described = self.retrieval.describe_seconds if self.retrieval is not None else 0.0
             if self.retrieval is not None:
@@ -414,7 +426,8 @@ class SLAMPipeline:
             A = prediction.image_to_grid if prediction.image_to_grid is not None else np.eye(3)[None].repeat(len(work.frames), 0)
             K = on_grid(self.known_intrinsics.K, A)
             ratios = focal_ratios(np.asarray(prediction.K, np.float64), K)
-            if not self._focal_ratios and not FOCAL_RATIO_WARNING[0] <= float(np.median(ratios)) <= FOCAL_RATIO_WARNING[1]:
+            ratios = ratios[np.isfinite(ratios)]  # a frame without a positive model focal has none to compare
+            if len(ratios) and not self._focal_ratios and not FOCAL_RATIO_WARNING[0] <= float(np.median(ratios)) <= FOCAL_RATIO_WARNING[1]:
                 log.warning("the model's focal length is %.2f times the given intrinsics' (%s) in the first submap: "
                             "check that they are for this camera and resolution", float(np.median(ratios)),
                             self.known_intrinsics.origin)
@@ -438,27 +451,34 @@ class SLAMPipeline:
         rebuilt from stored depth, so no other frame needs points now."""
         mask = confidence_mask(prediction.confidence, prediction.depth, self.config.submap.tau_conf)
         T_cam_submap = to_4x4(prediction.T_cam_submap)
-        needed = sorted({0, work.last_slot, *range(work.loop_slot(0), len(work.frames))})
+        needed = sorted({0, *range(work.first_new), *work.opening_slots(self.config.submap.overlap),
+                         *range(work.loop_slot(0), len(work.frames))})
         points = submap_points(prediction, self.config.submap.use_point_head, needed)
         views = {slot: FrameView(points[k], mask[slot], prediction.K[slot], T_cam_submap[slot])
                  for k, slot in enumerate(needed)}
         return DenseSubmap(prediction, T_cam_submap, mask, confidence_levels(prediction.confidence, prediction.depth), views)
 
     def align_odometry(self, work: SubmapInput, dense: DenseSubmap) -> Alignment | str | None:
-        """The measurement to the previous submap from the shared frame: the fit, else the camera
-        edge (as a fallback), else the reason neither can be used. ``None`` for a first submap."""
-        if self._shared_view is None:
+        """The measurement to the previous submap from the shared frames (all of them, robustly:
+        ``Aligner.align_frames``): the fit, else the first shared frame's camera edge (as a
+        fallback), else the reason neither can be used. ``None`` for a first submap."""
+        if not work.first_new:
             return None
-        before, after = self._shared_view, dense.views[0]
-        problem = camera_problem(before) or camera_problem(after)
-        if problem:
-            return problem
+        pairs = [(self._shared_views[work.frames[slot].index], dense.views[slot]) for slot in range(work.first_new)]
+        problems = [camera_problem(before) or camera_problem(after) for before, after in pairs]
+        pairs = [pair for pair, problem in zip(pairs, problems) if not problem]
+        if not pairs:
+            return problems[0]
+        before, after = pairs[0]
         try:
-            alignment = self.aligner.align(before, after, seed=work.submap_id)
+            alignment = self.aligner.align_frames(pairs, seed=work.submap_id)
             problem = edge_problem(alignment, self.config.alignment)
         except ValueError as exc:
             problem = str(exc)
         if problem is None:
+            if len(alignment.extras.get("per_frame", ())) >= 2:
+                self.noise_scale.add(link_scatter(alignment, alignment.extras["per_frame"], self.edge_information,
+                                                  self.backend.generators()))
             return alignment
         try:
             edge = self.aligner.camera_edge(before, after)
@@ -482,8 +502,8 @@ class SLAMPipeline:
         relative = np.eye(4)  # where a new segment starts relative to the last node, without a measurement
         if isinstance(odometry, Alignment):
             previous = self._by_frame[work.shared.index].submap_id
-            odometry = self.metric_frame.complete_link(odometry, previous, self._shared_view, dense.views[0],
-                                                       dense.prediction, 0, self.keyframes)
+            odometry = self.metric_frame.complete_link(odometry, previous, self._shared_views[work.shared.index],
+                                                       dense.views[0], dense.prediction, 0, self.keyframes)
             self.edges.append(EdgeReport.measured("odometry", previous, submap_id, work.shared.index, odometry))
             if odometry.fallback:
                 log.info("submap %d->%d: %s", previous, submap_id, odometry.fallback)
@@ -543,8 +563,9 @@ class SLAMPipeline:
                                                     frame.timestamp, work.submap_id)
             self.keyframes.append(stored)
             self._by_frame[frame.index] = stored
-        self._last_stored = work.frames[work.last_slot]
-        self._shared_view = dense.views[work.last_slot]
+        opening = work.opening_slots(self.config.submap.overlap)
+        self._last_stored = [work.frames[slot] for slot in opening]
+        self._shared_views = {work.frames[slot].index: dense.views[slot] for slot in opening}
 
     # ------------------------------------------------------------------ helpers of the steps
     def edge_information(self, alignment: Alignment) -> np.ndarray:
@@ -552,10 +573,10 @@ class SLAMPipeline:
         return edge_information(alignment, self.backend.generators(), self.config.backend)
 
     def _submap_frames(self, work: SubmapInput, dense: DenseSubmap) -> SubmapFrames:
-        """The submap's shared frame (when it has one) and new keyframes with their extrinsics."""
-        slots = ([0] if work.first_new else []) + list(work.new_slots)
+        """The submap's shared frames (when it has any) and new keyframes with their extrinsics."""
+        slots = list(range(work.first_new)) + list(work.new_slots)
         return SubmapFrames(tuple(work.frames[slot].index for slot in slots), dense.T_cam_submap[slots],
-                            shared=bool(work.first_new))
+                            shared=work.first_new)
 
     def _match_pairs(self, work: SubmapInput) -> list[tuple[int, int]]:
         """``(query keyframe slot, loop frame slot)`` of every loop candidate, when the loop check reads
@@ -670,7 +691,7 @@ class SLAMPipeline:
             ratios = np.asarray(self._focal_ratios)
             out["intrinsics"] = {
                 "K": [round(v, 4) for v in self.known_intrinsics.values()], "origin": self.known_intrinsics.origin,
-                "note": self.known_intrinsics.note, "model_given_it": self.frontend.capabilities.accepts_intrinsics,
+                "note": self.known_intrinsics.note, "model_given_it": self._model_takes_intrinsics,
                 "model_focal_ratio": {"median": round(float(np.median(ratios)), 4), "min": round(float(ratios.min()), 4),
                                       "max": round(float(ratios.max()), 4)} if len(ratios) else None}
         if self.config.source.metric_depth == "sensor":

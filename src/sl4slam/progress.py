@@ -67,6 +67,7 @@ class Progress:
         self._bar_done = 0  # frames the bar has been told of
         self._counts: dict[str, int] = {}
         self._printed = -1  # frames done at the last plain line
+        self._printed_counts: dict[str, int] = {}  # ... and the counts it showed
         self._by_submap = per_submap
 
     def frame(self, done: int | None = None, **counts: int) -> None:
@@ -99,15 +100,15 @@ class Progress:
         figures = "".join(f", {value} {name}" for name, value in self._counts.items())
         print(f"{self.description}: {self._done}{of} frames{figures}, {time.perf_counter() - self._start:.0f} s",
               file=self.stream, flush=True)
-        self._printed = self._done
+        self._printed, self._printed_counts = self._done, dict(self._counts)
 
     def close(self) -> None:
         """End the bar, or print the final line where the last one is stale."""
         if self._bar is not None:
             self._bar.close()
             self._bar = None
-        elif self.enabled and self._done != self._printed and self._done:
-            self._line()
+        elif self.enabled and self._done and (self._done != self._printed or self._counts != self._printed_counts):
+            self._line()  # the last line is stale: frames or counts (a last submap) changed since
         if self._redirect is not None:
             self._redirect.__exit__(None, None, None)
             self._redirect = None

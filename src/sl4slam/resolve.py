@@ -10,11 +10,12 @@ never applies a rule again; the runner prints :meth:`ResolvedConfig.lines`, the 
 The rules (sources in the settings' docstrings, ``sl4slam.config``):
 
 - graph design: "keyframe" (VGGT-SLAM 2.0) for the SL(4) group, "submap" for Sim(3);
-- alignment model: "calibration" for the keyframe graph, "sl4" for the SL(4) submap graph,
-  "sim3-cameras" for Sim(3); a projective model on a Sim(3) graph is refused;
-- metric upgrade: on for the SL(4) submap graph only, and never with known intrinsics (the
-  cameras are metric already); links are completed from the cameras only where it runs, on SL(4)
-  links;
+- alignment model: "select" for the keyframe graph (the calibration link or the 15-DOF fit, chosen
+  per link; with known intrinsics the calibration link, a similarity then), "sl4" for the SL(4)
+  submap graph, "sim3-cameras" for Sim(3); a projective model on a Sim(3) graph is refused;
+- metric upgrade: on where links may be 15-DOF (the SL(4) submap graph; the keyframe graph with
+  "select", "sl4" or "hybrid" links), and never with known intrinsics (the cameras are metric
+  already); links are completed from the cameras only where it runs, on SL(4) links;
 - attention loop check: never without retrieval; on with the keyframe graph when the frontend
   scores pairs; "on" with a frontend that cannot is refused;
 - retrieval: SALAD when its weights are found locally, else ORB;
@@ -33,6 +34,7 @@ import struct
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 from .config import SLAMConfig
@@ -62,6 +64,7 @@ class AlignmentModel(str, Enum):
     SL4 = "sl4"
     CALIBRATION = "calibration"
     HYBRID = "hybrid"
+    SELECT = "select"
     SIM3_POINTS = "sim3-points"
     SIM3_CAMERAS = "sim3-cameras"
 
@@ -155,7 +158,7 @@ def resolve(config: SLAMConfig | ResolvedConfig, capabilities: FrontendCapabilit
     group = Group(settled.backend.kind)
     graph = _graph(settled, group, notes)
     alignment = _alignment(settled, group, graph, notes)
-    metric_upgrade = _metric_upgrade(settled, group, graph, notes)
+    metric_upgrade = _metric_upgrade(settled, group, graph, alignment, notes)
     if settled.source.intrinsics.strip():
         parse_intrinsics(settled.source.intrinsics)  # a bad spec is one line now; "auto" needs the source
         if metric_upgrade:
@@ -206,15 +209,16 @@ def model_of_weights(weights: str) -> FrontendEntry | None:
     return next((e for e in frontend_entries() if e.recognizes is not None and e.recognizes(keys)), None)
 
 
-def _tensor_names(path: Path) -> dict[str, None]:
-    """Tensor names of a weights file (a safetensors header is read without loading anything)."""
+def _tensor_names(path: Path) -> dict[str, SimpleNamespace]:
+    """Tensor names of a weights file with their shapes (``.shape``: models of one family differ in
+    widths only); a safetensors header is read without loading anything."""
     if path.suffix.lower() == ".safetensors":
         try:
             with open(path, "rb") as handle:
                 (length,) = struct.unpack("<Q", handle.read(8))
                 header = json.loads(handle.read(length))
-            return dict.fromkeys(k for k in header if k != "__metadata__")
-        except (OSError, ValueError, struct.error):
+            return {k: SimpleNamespace(shape=tuple(v.get("shape", ()))) for k, v in header.items() if k != "__metadata__"}
+        except (OSError, ValueError, struct.error, AttributeError):
             return {}
     from .models.checkpoint import read_checkpoint
 
@@ -222,7 +226,7 @@ def _tensor_names(path: Path) -> dict[str, None]:
         state_dict, _ = read_checkpoint(path, "model", "check the file")
     except UserError:
         return {}
-    return dict.fromkeys(state_dict)
+    return {k: SimpleNamespace(shape=tuple(getattr(v, "shape", ()))) for k, v in state_dict.items()}
 
 
 def _graph(settled: SLAMConfig, group: Group, notes: list[str]) -> GraphDesign:
@@ -238,10 +242,14 @@ def _graph(settled: SLAMConfig, group: Group, notes: list[str]) -> GraphDesign:
 
 def _alignment(settled: SLAMConfig, group: Group, graph: GraphDesign, notes: list[str]) -> AlignmentModel:
     if settled.alignment.model == "auto":
+        known_k = bool(settled.source.intrinsics.strip())
         model = ("sim3-cameras" if group is Group.SIM3 else
-                 "calibration" if graph is GraphDesign.KEYFRAME else "sl4")
+                 "calibration" if graph is GraphDesign.KEYFRAME and known_k else
+                 "select" if graph is GraphDesign.KEYFRAME else "sl4")
         settled.alignment.model = model
-        notes.append(f"links: {model} (auto: the {graph.value} graph's in {group.value})")
+        notes.append("links: calibration (auto: with known intrinsics the shared frames' link is a similarity; a "
+                     "15-DOF fit would add a projective drift that no metric upgrade removes)" if model == "calibration"
+                     else f"links: {model} (auto: the {graph.value} graph's in {group.value})")
     alignment = AlignmentModel(settled.alignment.model)
     if group is Group.SIM3 and alignment.group is Group.SL4:
         raise UserError(f"--alignment {alignment.value} measures projective transforms, which a Sim(3) graph cannot "
@@ -249,13 +257,16 @@ def _alignment(settled: SLAMConfig, group: Group, graph: GraphDesign, notes: lis
     return alignment
 
 
-def _metric_upgrade(settled: SLAMConfig, group: Group, graph: GraphDesign, notes: list[str]) -> bool:
+def _metric_upgrade(settled: SLAMConfig, group: Group, graph: GraphDesign, alignment: AlignmentModel,
+                    notes: list[str]) -> bool:
     if settled.upgrade.mode == "auto":
-        on = group is Group.SL4 and graph is GraphDesign.SUBMAP
+        projective = alignment in (AlignmentModel.SL4, AlignmentModel.HYBRID, AlignmentModel.SELECT)
+        on = group is Group.SL4 and (graph is GraphDesign.SUBMAP or projective)
         settled.upgrade.mode = "on" if on else "off"
-        notes.append("metric upgrade: on (auto: the SL(4) submap graph's map inherits one projective distortion)" if on
-                     else f"metric upgrade: off (auto: it is for the SL(4) submap graph; --metric-upgrade on applies it "
-                          f"to the {group.value} {graph.value} graph too)")
+        notes.append(f"metric upgrade: on (auto: {alignment.value} links may be 15-DOF, so the map inherits one projective "
+                     "distortion)" if on else
+                     f"metric upgrade: off (auto: {alignment.value} links carry no common projective distortion; "
+                     "--metric-upgrade on applies it all the same)")
     return settled.upgrade.mode == "on"
 
 

@@ -11,7 +11,9 @@ kept: the frontend re-derives them from the source frame when the map is written
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
+import cv2
 import numpy as np
 
 from .geometry import to_4x4, unproject_depth
@@ -25,7 +27,52 @@ RANK_SAMPLES = 50_000
 
 def valid_pixels(confidence: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """``(S, H, W)`` bool: finite, positive depth with a finite confidence."""
-    return np.isfinite(depth) & (depth > 0) & np.isfinite(confidence)
+    # in place: each fresh full-size temporary costs as much as the comparison that fills it
+    valid = np.isfinite(depth)
+    valid &= depth > 0
+    valid &= np.isfinite(confidence)
+    return valid
+
+
+KTH_SAMPLE = 1 << 15
+"""Sample size (an evenly strided subset) that brackets the k-th smallest confidence of a submap."""
+
+
+def _kth_smallest(values: np.ndarray, k: int) -> float:
+    """The ``k``-th smallest (0-based) of the finite ``values`` ``(n,)``: ``np.partition(values, k)[k]``.
+
+    A full partition of a submap's millions of confidences dominates the mask's cost. A strided
+    sample brackets the k-th value between two sample values ``lo <= hi``; when the counts show it
+    lies in ``[lo, hi]`` only those values (a few percent) are partitioned. The counts make the
+    answer exact whatever the sample; when the bracket misses (never seen), the full partition runs.
+    """
+    n = len(values)
+    step = n // KTH_SAMPLE
+    if step < 8:  # small input: partitioning it outright is as cheap
+        return np.partition(values, k)[k]
+    sample = values[::step]
+    m = len(sample)
+    q = k / max(n - 1, 1)
+    # ranks of a sample quantile scatter by ~sqrt(m q (1 - q)); a wide margin keeps misses rare
+    margin = 6.0 * np.sqrt(m * q * (1.0 - q)) + 0.002 * m + 2.0
+    r_lo = int(max(0, np.floor(q * (m - 1) - margin)))
+    r_hi = int(min(m - 1, np.ceil(q * (m - 1) + margin)))
+    bracket = np.partition(sample, [r_lo, r_hi])
+    lo, hi = bracket[r_lo], bracket[r_hi]
+    inside = values >= lo
+    below = n - int(np.count_nonzero(inside))  # values < lo (they are finite)
+    inside &= values <= hi
+    kept = values[inside]
+    if below <= k < below + len(kept):
+        return np.partition(kept, k - below)[k - below]
+    return np.partition(values, k)[k]
+
+
+def _valid_values(confidence: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``confidence[valid]`` ``(n,)``; a view, not a copy, when every pixel is valid (the usual case)."""
+    if valid.all():
+        return confidence.reshape(-1)
+    return confidence[valid]
 
 
 def confidence_mask(confidence: np.ndarray, depth: np.ndarray, percentile: float) -> np.ndarray:
@@ -34,25 +81,133 @@ def confidence_mask(confidence: np.ndarray, depth: np.ndarray, percentile: float
     Keeps pixels whose confidence is strictly above the submap's own ``percentile`` of confidence
     (over all its frames, as in VGGT-SLAM) and whose depth is finite and positive.
     """
-    valid = valid_pixels(confidence, depth)
-    if not valid.any() or percentile <= 0:
+    return _mask_from_valid(confidence, valid_pixels(confidence, depth), percentile)
+
+
+def _mask_from_valid(confidence: np.ndarray, valid: np.ndarray, percentile: float) -> np.ndarray:
+    if percentile <= 0 or not valid.any():
         return valid
-    values = confidence[valid]
-    # the k-th smallest value (no interpolation): a partition is several times faster than
-    # np.percentile on the millions of pixels of a submap
+    values = _valid_values(confidence, valid)
+    # the k-th smallest value (no interpolation), not np.percentile: see _kth_smallest
     k = min(len(values) - 1, int(round(percentile / 100.0 * (len(values) - 1))))
-    threshold = np.partition(values, k)[k]
-    return valid & (confidence > threshold)
+    threshold = _kth_smallest(values, k)
+    mask = confidence > threshold
+    mask &= valid
+    return mask
 
 
 def confidence_levels(confidence: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """``(RANK_LEVELS,)`` confidence values at the submap's 1/255 .. 255/255 quantiles (of its valid
     pixels, from an evenly strided subset): ``searchsorted`` against them gives a uint8 rank."""
-    values = confidence[valid_pixels(confidence, depth)]
+    return _levels_from_valid(confidence, valid_pixels(confidence, depth))
+
+
+def _levels_from_valid(confidence: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    values = _valid_values(confidence, valid)
     if len(values) == 0:
         return np.full(RANK_LEVELS, np.inf, dtype=np.float32)
     values = values[:: max(1, len(values) // RANK_SAMPLES)]
     return np.quantile(values, np.arange(1, RANK_LEVELS + 1) / (RANK_LEVELS + 1)).astype(np.float32)
+
+
+def confidence_mask_and_levels(confidence: np.ndarray, depth: np.ndarray, percentile: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(confidence_mask(...), confidence_levels(...))`` of one submap, the valid pixels found once."""
+    valid = valid_pixels(confidence, depth)
+    return _mask_from_valid(confidence, valid, percentile), _levels_from_valid(confidence, valid)
+
+
+def confidence_ranks(levels: np.ndarray, confidence: np.ndarray) -> np.ndarray:
+    """uint8 ranks ``np.searchsorted(levels, confidence).astype(np.uint8)`` of ``confidence`` (any shape)
+    against the sorted ``levels`` ``(RANK_LEVELS,)`` of :func:`confidence_levels`.
+
+    A binary search per pixel mispredicts a branch at every step. For float32 input each value is
+    instead put into a bucket of its order-preserving integer key (``_RankTable``): a bucket that
+    holds no level gives the rank by one table look-up; the few values in a bucket with a level
+    (or outside the levels' range, or NaN) take ``searchsorted``. The ranks are identical.
+    """
+    keys = np.asarray(confidence)
+    levels = np.asarray(levels)
+    table = _rank_table(levels.tobytes()) if keys.dtype == np.float32 and levels.dtype == np.float32 else None
+    if table is None:
+        return np.searchsorted(levels, keys).astype(np.uint8)
+    keys = keys + np.float32(0.0)  # a contiguous copy, with -0.0 made +0.0 (they compare equal)
+    bucket = _ordered_keys(keys)
+    bucket >>= table.shift
+    np.clip(bucket, table.first, table.last, out=bucket)
+    bucket -= table.first
+    ranks = table.rank[bucket]
+    slow = table.has_level[bucket]  # includes NaN and values outside the levels' buckets (clipped into the end ones)
+    ranks[slow] = np.searchsorted(levels, keys[slow])
+    return ranks
+
+
+def to_float16(x: np.ndarray) -> np.ndarray:
+    """``x.astype(np.float16)``, bit for bit, for an ``(H, W)`` array.
+
+    NumPy converts element by element in software; OpenCV's conversion uses the CPU's float16
+    instructions, several times faster, and rounds the same way (to nearest, ties to even, with
+    overflow to inf). It only quiets signalling NaNs, which NumPy keeps as they are: NaN pixels
+    are converted by NumPy. Falls back to NumPy where OpenCV cannot write float16.
+    """
+    global _CV_FLOAT16
+    if _CV_FLOAT16 and x.dtype == np.float32 and x.ndim == 2:
+        try:
+            out = cv2.multiply(x, 1.0, dtype=cv2.CV_16F)  # x * 1.0 is x exactly
+        except cv2.error:  # an OpenCV without float16 arithmetic
+            _CV_FLOAT16 = False
+        else:
+            nan = np.isnan(x)
+            if nan.any():
+                out[nan] = x[nan].astype(np.float16)
+            return out
+    return x.astype(np.float16)
+
+
+_CV_FLOAT16 = hasattr(cv2, "CV_16F")
+"""Whether OpenCV may convert to float16 (cleared at its first refusal)."""
+
+
+def _ordered_keys(x: np.ndarray) -> np.ndarray:
+    """int32 keys of float32 ``x`` ordered as the values (non-NaN; -0.0 and +0.0 differ, so callers
+    add +0.0 first): the bits of a negative float, but its magnitude bits inverted."""
+    bits = x.view(np.int32)
+    keys = bits >> 31  # -1 for negative values, 0 otherwise
+    keys &= 0x7FFFFFFF
+    keys ^= bits
+    return keys
+
+
+@dataclass(frozen=True)
+class _RankTable:
+    """Buckets of ``_ordered_keys >> shift`` over the levels' range ``first .. last``: ``rank[b]``
+    levels lie in buckets before ``b`` (uint8), ``has_level[b]`` whether bucket ``b`` holds one."""
+
+    shift: int
+    first: int
+    last: int
+    rank: np.ndarray
+    has_level: np.ndarray
+
+
+TABLE_BUCKETS = 1 << 16
+"""Most buckets of a rank table (the key shift is chosen so that the levels' range fits)."""
+
+
+@lru_cache(maxsize=4)
+def _rank_table(level_bytes: bytes) -> _RankTable | None:
+    """The rank table of float32 levels (given as bytes: one table serves a submap's keyframes);
+    ``None`` when the levels are not sorted or hold NaN (then ``searchsorted`` runs as is)."""
+    levels = np.frombuffer(level_bytes, dtype=np.float32) + np.float32(0.0)
+    if len(levels) == 0 or len(levels) > 255 or np.isnan(levels).any() or (np.diff(levels) < 0).any():
+        return None
+    keys = _ordered_keys(levels).astype(np.int64)
+    span = int(keys[-1] - keys[0])
+    shift = max(0, span.bit_length() - (TABLE_BUCKETS - 1).bit_length())
+    buckets = keys >> shift
+    first, last = int(buckets[0]), int(buckets[-1])
+    counts = np.bincount(buckets - first, minlength=last - first + 1)
+    rank = (np.cumsum(counts) - counts).astype(np.uint8)
+    return _RankTable(shift, first, last, rank, counts > 0)
 
 
 def submap_points(prediction: SubmapPrediction, use_point_head: bool = False, slots=None) -> np.ndarray:
@@ -114,9 +269,9 @@ class StoredKeyframe:
             timestamp=float(timestamp),
             submap_id=int(submap_id),
             slot=int(slot),
-            depth=prediction.depth[slot].astype(np.float16),
+            depth=to_float16(prediction.depth[slot]),
             mask_bits=np.packbits(mask[slot]),
-            confidence_rank=np.searchsorted(levels, prediction.confidence[slot, ::2, ::2]).astype(np.uint8),
+            confidence_rank=confidence_ranks(levels, prediction.confidence[slot, ::2, ::2]),
             K=np.asarray(prediction.K[slot], dtype=np.float64),
             T_cam_submap=to_4x4(prediction.T_cam_submap[slot]),
             principal_point=principal_points(prediction)[slot],

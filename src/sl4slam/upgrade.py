@@ -56,7 +56,7 @@ from scipy.optimize import least_squares
 
 from .config import UpgradeConfig
 from .errors import UserError
-from .geometry import decompose_projection, normalize_sl4, rq_decomposition
+from .geometry import decompose_projection, normalize_sl4, projection_intrinsics, rq_decomposition
 
 NUM_CALIBRATION = 5
 """Free entries of the upper-triangular ``A`` (``A_33 = 1``)."""
@@ -464,7 +464,7 @@ def estimate_metric_upgrade(
     H = _similarity_gauge(H_normalized @ T_norm, P, T_in, C_in, inliers)
     if H is None:
         return skipped("refinement failed (upgrade not invertible)", inliers, condition, uncertainty, start=best_start)
-    K_out, _, _ = decompose_projection(P @ np.linalg.inv(H))
+    K_out = projection_intrinsics(P @ np.linalg.inv(H))
     constraints_out = intrinsic_constraint_residuals(K_out, pp)
     before, after = _rms(constraints_in[inliers]), _rms(constraints_out[inliers])
     details = {"start": best_start, "f0": f0, "fit_rms": _rms(final.fun), "kept": int(inliers.sum())}

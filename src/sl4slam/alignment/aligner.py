@@ -14,7 +14,12 @@ each), keeps the pixels confident in both (an evenly strided subset beyond
 - :class:`CalibrationAligner` (``"calibration"``, VGGT-SLAM 2.0): the shared frame's two cameras with
   their intrinsics and the median depth ratio, as an SL(4) map, for every frame (no point fit);
 - :class:`HybridAligner` (``"hybrid"``): that link, or the 15-DOF fit where the points show a relative
-  projective distortion well beyond what depth errors explain.
+  projective distortion well beyond what depth errors explain;
+- :class:`SelectAligner` (``"select"``): that link or the 15-DOF fit, whichever predicts held-out
+  shared points better (``sl4slam.alignment.select``).
+
+Consecutive submaps may share several frames (``SubmapConfig.overlap``): :meth:`PointAligner.align_frames`
+makes one link of them all (``sl4slam.alignment.shared``).
 
 Any of them offers :meth:`~sl4slam.types.Aligner.camera_edge`, the camera-and-depth measurement
 the pipeline falls back to when a fit fails (with an inflated sigma).
@@ -26,12 +31,14 @@ from abc import abstractmethod
 
 import numpy as np
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Sequence
 
 from ..config import AlignmentConfig, SLAMConfig
 from ..edges import is_camera_link
 from ..types import Aligner, Alignment, FrameView
 from .camera_constrained import camera_constrained_sl4
+from .select import choose_link
+from .shared import link_from_shared_frames
 from .ransac import estimate_sim3, estimate_sl4, relief, transfer_errors
 from .sim3 import calibration_scale_link, sim3_from_shared_frame
 
@@ -48,10 +55,22 @@ def shared_pixels(view_a: FrameView, view_b: FrameView, limit: int) -> np.ndarra
 
 
 class PointAligner(Aligner):
-    """Shared part of the aligners: pixel selection and the camera edge."""
+    """Shared part of the aligners: pixel selection, several shared frames and the camera edge.
+
+    Attributes:
+        fits_points: the model is fitted to the points (several frames' points are then fitted
+            together); otherwise it reads the frame's cameras (several frames' links are averaged).
+    """
+
+    fits_points: bool = True
 
     def __init__(self, config: AlignmentConfig) -> None:
         self.config = config
+
+    def align_frames(self, pairs: Sequence[tuple[FrameView, FrameView]], seed: int) -> Alignment:
+        """One link from several shared frames, robust to a frame with bad depth
+        (``sl4slam.alignment.shared``)."""
+        return link_from_shared_frames(self, pairs, seed)
 
     def pairs(self, view_a: FrameView, view_b: FrameView) -> tuple[np.ndarray, np.ndarray]:
         """``(X_a, X_b)`` ``(N, 3)`` float64 of the shared confident pixels; ``ValueError`` if too few."""
@@ -122,11 +141,11 @@ class SL4Aligner(PointAligner):
         cfg = self.config
         low = relief(X_b, view_b.centre, cfg.max_points)
         if low < cfg.min_relief:
-            return self._degenerate(X_a, X_b, view_a, view_b, seed,
-                                    f"shared frame nearly flat against its depth errors (relief {low:.3g} < {cfg.min_relief})")
+            return self._flagged(self._degenerate(
+                X_a, X_b, view_a, view_b, seed, f"shared frame nearly flat against its depth errors (relief {low:.3g} < {cfg.min_relief})"))
         alignment = estimate_sl4(X_a, X_b, cfg, seed=seed)
         if alignment.fallback is not None:
-            return self._degenerate(X_a, X_b, view_a, view_b, seed, alignment.fallback, alignment)
+            return self._flagged(self._degenerate(X_a, X_b, view_a, view_b, seed, alignment.fallback, alignment))
         flatness = alignment.extras.get("planarity", 1.0)
         if flatness >= cfg.near_planar_threshold:
             return alignment
@@ -137,6 +156,12 @@ class SL4Aligner(PointAligner):
             constrained.fallback = (f"nearly planar shared frame (planarity {flatness:.3g}): the camera-constrained fit "
                                     f"explains more points ({constrained.inlier_ratio:.3f} vs {alignment.inlier_ratio:.3f})")
             return constrained
+        return alignment
+
+    @staticmethod
+    def _flagged(alignment: Alignment) -> Alignment:
+        """``alignment`` marked as the measurement of a degenerate frame (``extras["degenerate"]``)."""
+        alignment.extras["degenerate"] = True
         return alignment
 
     def _degenerate(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int, why: str,
@@ -183,6 +208,7 @@ class Sim3CameraAligner(PointAligner):
 
     model = "sim3-cameras"
     group = "sim3"
+    fits_points = False
 
     def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
         return sim3_from_shared_frame(view_a.T_cam_submap, view_b.T_cam_submap, X_a, X_b, self.config.inlier_threshold)
@@ -193,6 +219,7 @@ class CalibrationAligner(SL4Aligner):
     their intrinsics and the median depth ratio (:func:`calibration_scale_link`), never a point fit."""
 
     model = "calibration"
+    fits_points = False
 
     def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
         return calibration_scale_link(view_a.K, view_a.T_cam_submap, view_b.K, view_b.T_cam_submap, X_a, X_b,
@@ -238,9 +265,29 @@ class HybridAligner(SL4Aligner):
         return chosen
 
 
+class SelectAligner(SL4Aligner):
+    """The calibration-and-scale link or the 15-DOF fit, chosen per link by which predicts the
+    shared points it was not fitted on better: other shared frames, or the other half of a single
+    one (``sl4slam.alignment.select``, where the reasons are). ``Alignment.extras["select"]`` records
+    the held-out errors and the choice."""
+
+    model = "select"
+
+    def __init__(self, config: AlignmentConfig) -> None:
+        super().__init__(config)
+        self._fit = SL4Aligner(config)
+        self._link = CalibrationAligner(config)
+
+    def align(self, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
+        return choose_link(self._fit, self._link, [(view_a, view_b)], seed)
+
+    def align_frames(self, pairs: Sequence[tuple[FrameView, FrameView]], seed: int) -> Alignment:
+        return choose_link(self._fit, self._link, pairs, seed)
+
+
 ALIGNERS: dict[str, type[PointAligner]] = {
-    "sl4": SL4Aligner, "calibration": CalibrationAligner, "hybrid": HybridAligner, "sim3-points": Sim3PointAligner,
-    "sim3-cameras": Sim3CameraAligner}
+    "sl4": SL4Aligner, "calibration": CalibrationAligner, "hybrid": HybridAligner, "select": SelectAligner,
+    "sim3-points": Sim3PointAligner, "sim3-cameras": Sim3CameraAligner}
 
 
 def make_aligner(config: "ResolvedConfig | SLAMConfig") -> Aligner:

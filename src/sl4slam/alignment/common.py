@@ -25,7 +25,8 @@ def clean_correspondences(X_a: np.ndarray, X_b: np.ndarray, minimum: int, model:
         model: model name for the error message.
 
     Returns:
-        ``(X_a, X_b)`` finite rows as float64 and the ``(N,)`` bool mask of kept rows.
+        ``(X_a, X_b)`` finite rows as C-contiguous float64 (the inputs themselves when every row is
+        finite and they are so already: callers only read them) and the ``(N,)`` bool mask of kept rows.
 
     Raises:
         ValueError: shapes disagree, or fewer than ``minimum`` finite rows remain.
@@ -34,6 +35,10 @@ def clean_correspondences(X_a: np.ndarray, X_b: np.ndarray, minimum: int, model:
     X_b = np.asarray(X_b, dtype=np.float64)
     if X_a.shape != X_b.shape or X_a.ndim != 2 or X_a.shape[1] != 3:
         raise ValueError(f"{model} alignment needs two (N, 3) point arrays of equal shape, got {X_a.shape} and {X_b.shape}")
+    if len(X_a) >= minimum and np.isfinite(X_a).all() and np.isfinite(X_b).all():
+        # the usual case: no row to drop, so no copy (C-contiguous like the copies below, so that
+        # later products see the same memory layout)
+        return np.ascontiguousarray(X_a), np.ascontiguousarray(X_b), np.ones(len(X_a), dtype=bool)
     finite = np.isfinite(X_a).all(axis=1) & np.isfinite(X_b).all(axis=1)
     count = int(finite.sum())
     if count < minimum:

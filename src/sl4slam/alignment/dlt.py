@@ -26,6 +26,9 @@ from .common import clean_correspondences
 # Smallest / largest singular value of a minimal 15x16 system below which its null space is not
 # one-dimensional (e.g. four of the five points coplanar, or a repeated point).
 MINIMAL_RANK_TOLERANCE = 1e-7
+DLT_SVD_POINTS = 64
+"""Up to this many points the DLT least squares takes the SVD of the design matrix itself (no
+squaring of the condition number); beyond, the eigenvector of the 16x16 normal matrix."""
 
 
 def normalize_points(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -75,10 +78,23 @@ def _dlt_normal_matrix(X_a: np.ndarray, X_b: np.ndarray, weights: np.ndarray | N
     ``sum B B^T`` (diagonal, i <= 3), ``-sum a_i B B^T`` (i, 4) and ``sum |a|^2 B B^T`` (4, 4):
     five weighted sums of the outer products ``B B^T``, one BLAS product for all of them.
     """
+    coefficients, outer = dlt_normal_terms(X_a, X_b)
+    return dlt_normal_matrix_from_terms(coefficients, outer, weights)
+
+
+def dlt_normal_terms(X_a: np.ndarray, X_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-point terms of the DLT normal matrix: ``coefficients`` ``(N, 5)`` = ``[1, a_1, a_2, a_3, |a|^2]``
+    and ``outer`` ``(N, 16)`` = ``B B^T`` flattened, ``B = [X_b, 1]``; both C-contiguous float64."""
     n = len(X_b)
     B = np.concatenate([X_b, np.ones((n, 1))], axis=1)
     outer = (B[:, :, None] * B[:, None, :]).reshape(n, 16)
     coefficients = np.concatenate([np.ones((n, 1)), X_a, (X_a**2).sum(axis=1, keepdims=True)], axis=1)
+    return coefficients, outer
+
+
+def dlt_normal_matrix_from_terms(coefficients: np.ndarray, outer: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+    """``A^T W A`` ``(16, 16)`` from :func:`dlt_normal_terms` ``(n, 5), (n, 16)`` (C-contiguous) and
+    optional weights ``(n,)``."""
     if weights is not None:
         coefficients = coefficients * weights[:, None]
     sums = (coefficients.T @ outer).reshape(5, 4, 4)  # [sum BB^T, sum a_1 BB^T, .., sum |a|^2 BB^T]
@@ -91,10 +107,34 @@ def _dlt_normal_matrix(X_a: np.ndarray, X_b: np.ndarray, weights: np.ndarray | N
     return M.reshape(16, 16)
 
 
+def dlt_normal_solution(M: np.ndarray) -> np.ndarray:
+    """Unit-norm ``(4, 4)`` minimizer of ``h^T M h``: the eigenvector of the smallest eigenvalue of
+    the normal matrix ``M`` ``(16, 16)``."""
+    return np.linalg.eigh(M)[1][:, 0].reshape(4, 4)
+
+
 def fix_sign_by_w(H: np.ndarray, X_b: np.ndarray) -> np.ndarray:
-    """Flip ``H`` ``(4, 4)`` so the majority of ``X_b`` ``(N, 3)`` map to ``w > 0``."""
+    """Flip ``H`` ``(4, 4)`` so the majority of ``X_b`` ``(N, 3)`` map to ``w > 0`` (``median(w) < 0``)."""
     w = X_b @ H[3, :3] + H[3, 3]
-    return -H if np.median(w) < 0 else H
+    return -H if median_is_negative(w) else H
+
+
+def median_is_negative(values: np.ndarray) -> bool:
+    """``np.median(values) < 0`` for ``(n,)`` floats, from counts instead of a partition.
+
+    An odd count's median is negative when more than half the values are; an even count's, the
+    mean of the two middle values, when more than half are, or, with exactly half negative, when
+    the largest negative and the smallest non-negative value sum below zero (as ``np.median``
+    computes it). NaN anywhere makes the median NaN: not negative.
+    """
+    n = len(values)
+    negative = int(np.count_nonzero(values < 0))
+    if n == 0 or negative + int(np.count_nonzero(values >= 0)) < n:
+        return False
+    if 2 * negative != n:  # the middle value(s) all on one side of zero
+        return 2 * negative > n
+    below, above = values[values < 0].max(), values[values >= 0].min()
+    return bool((below + above) / 2.0 < 0)
 
 
 def dlt_sl4(X_a: np.ndarray, X_b: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
@@ -129,16 +169,14 @@ def dlt_homogeneous(X_a: np.ndarray, X_b: np.ndarray, weights: np.ndarray | None
     and fixes sign and scale. Small systems use the SVD of the design matrix itself (no squaring
     of the condition number); large ones the eigenvector of the 16x16 normal matrix.
     """
-    if len(X_a) <= 64:
+    if len(X_a) <= DLT_SVD_POINTS:
         A = dlt_design_matrix(X_a, X_b)
         if weights is not None:
             A = A * np.sqrt(np.repeat(np.asarray(weights, dtype=np.float64), 3))[:, None]
         # Vt is 16x16 either way; full U is only needed when A has fewer than 16 rows.
-        h = np.linalg.svd(A, full_matrices=len(A) < 16)[2][-1]
-    else:
-        w = None if weights is None else np.asarray(weights, dtype=np.float64)
-        h = np.linalg.eigh(_dlt_normal_matrix(X_a, X_b, w))[1][:, 0]
-    return h.reshape(4, 4)
+        return np.linalg.svd(A, full_matrices=len(A) < 16)[2][-1].reshape(4, 4)
+    w = None if weights is None else np.asarray(weights, dtype=np.float64)
+    return dlt_normal_solution(_dlt_normal_matrix(X_a, X_b, w))
 
 
 def minimal_sl4_batch(X_a: np.ndarray, X_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

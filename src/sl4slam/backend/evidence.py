@@ -13,7 +13,9 @@ and the Gauss-Newton information of the fit is ``sum_k J_k^T J_k / sigma^2`` wit
 per-axis variance of the inlier residuals (``rms^2 / 3``). Three corrections make it honest:
 
 - dense residuals are not independent (a model errs in smooth blobs, not per pixel), so the sum
-  counts at most ``BackendConfig.effective_points`` points however many pixels were aligned;
+  counts at most ``BackendConfig.effective_points`` points per shared frame however many pixels
+  were aligned (a link measured on several shared frames, ``extras["shared_frames"]``, has that
+  many independent witnesses);
 - its eigenvalues are clamped to ``[1 / max_sigma^2, 1 / min_sigma^2]``: directions the points do
   not observe (a planar shared frame leaves the plane's projective family free) get a weak but
   finite weight, and no edge claims a precision beyond ``min_sigma``;
@@ -69,6 +71,61 @@ def edge_information(alignment: Alignment, generators: np.ndarray, config: Backe
     X_a, X_b = support
     J = transfer_jacobians(alignment.H, X_b, generators)  # (n, 3, dim)
     variance = max(alignment.rms, 1e-12) ** 2 / 3.0  # per axis; exact fits are bounded by the clamp below
-    independent = min(float(alignment.support_count or len(X_b)), float(config.effective_points))
+    witnesses = int(alignment.extras.get("shared_frames", 1))
+    independent = min(float(alignment.support_count or len(X_b)), float(config.effective_points) * witnesses)
     information = np.einsum("nid,nie->de", J, J) * (independent / len(X_b)) / variance
     return clamp_information(information, config.min_sigma, config.max_sigma) / inflation
+
+
+def tangent_coordinates(step: np.ndarray, generators: np.ndarray) -> np.ndarray:
+    """``(dim,)`` coordinates ``xi`` of a Lie algebra element ``step`` ``(4, 4)`` on ``generators``
+    ``(dim, 4, 4)`` (least squares: ``step ~ sum_m xi_m G_m``)."""
+    basis = generators.reshape(len(generators), 16).T
+    return np.linalg.lstsq(basis, np.asarray(step, dtype=np.float64).reshape(16), rcond=None)[0]
+
+
+def link_scatter(combined: Alignment, per_frame: list[Alignment], information, generators: np.ndarray) -> float:
+    """How much more the shared frames' own links scatter about their combined link than their
+    evidence says: ``N / (N - 1) * mean_f xi_f^T I_f xi_f / dim``, with ``exp(-xi_f) H_f = H``
+    (``H_true = exp(-xi) H``, the module doc's convention), ``I_f = information(frame f's own link)``
+    and ``N / (N - 1)`` for the combined link being their mean. About 1 when the information is
+    honest; the frames' camera errors, which the evidence of one frame's points cannot see, raise it.
+
+    Args:
+        combined: the link of every shared frame together (``sl4slam.alignment.shared``).
+        per_frame: each frame's own link (at least two).
+        information: ``Alignment -> (dim, dim)`` the graph's information of an edge.
+        generators: ``(dim, 4, 4)`` the graph group's tangent basis.
+    """
+    from scipy.linalg import logm
+
+    from ..geometry import normalize_sl4
+
+    def unit(H: np.ndarray) -> np.ndarray:  # SL(4) links to det 1; a similarity's scale stays in its log
+        return normalize_sl4(H) if len(generators) == 15 else np.asarray(H, dtype=np.float64)
+
+    target = unit(combined.H)
+    values = []
+    for own in per_frame:
+        xi = -tangent_coordinates(np.real(logm(target @ np.linalg.inv(unit(own.H)))), generators)
+        values.append(float(xi @ information(own) @ xi) / len(generators))
+    return len(per_frame) / (len(per_frame) - 1) * float(np.mean(values))
+
+
+class NoiseScale:
+    """How much the graph's edges understate their noise, measured while the run goes on: the
+    median :func:`link_scatter` of the links made from several shared frames so far (1 before any,
+    and never below 1: the evidence is a floor, not a ceiling). The loop gate divides its
+    chi-square by it, i.e. scales the map's covariance, so that a loop is judged against the drift
+    the map really accumulated (``sl4slam.loops``)."""
+
+    def __init__(self) -> None:
+        self.scatters: list[float] = []
+
+    def add(self, scatter: float) -> None:
+        if np.isfinite(scatter):
+            self.scatters.append(float(scatter))
+
+    @property
+    def value(self) -> float:
+        return max(1.0, float(np.median(self.scatters))) if self.scatters else 1.0

@@ -32,20 +32,22 @@ class SubmapFrames:
     """The keyframes of one submap, as a keyframe graph needs them (the submap graph ignores them).
 
     Attributes:
-        frame_indices: the frames in submap order: the shared frame first when ``shared``, then the
-            new keyframes (the last of which is the next submap's shared frame).
+        frame_indices: the frames in submap order: the frames shared with the previous submap first
+            (``shared`` of them), then the new keyframes (the last ``SubmapConfig.overlap`` of which
+            open the next submap).
         T_cam_submap: ``(n, 4, 4)`` float64 their extrinsics (camera-from-submap) in this submap.
-        shared: whether the first frame is the shared frame (new in the previous submap).
+        shared: how many leading frames are shared with the previous submap (new there); 0 for a
+            submap that shares none. ``True``/``False`` read as 1/0.
     """
 
     frame_indices: tuple[int, ...]
     T_cam_submap: np.ndarray
-    shared: bool
+    shared: int
 
     @property
     def new(self) -> range:
         """Positions of the new keyframes."""
-        return range(1 if self.shared else 0, len(self.frame_indices))
+        return range(int(self.shared), len(self.frame_indices))
 
 
 @dataclass

@@ -10,9 +10,10 @@ Factors (``x_a ~ Z x_b`` read as in ``sl4slam.backend.pose_graph``, whose factor
 
 - inside a submap, between consecutive keyframes ``a`` and ``b``: the frontend's relative pose
   ``T_cam_a_submap T_cam_b_submap^-1`` (rigid), isotropic ``BackendConfig.frame_sigma``;
-- between submaps, between the shared frame's two nodes: the odometry measurement, which the
-  pipeline hands over in submap coordinates (``H_prev_cur``), moved onto the nodes:
-  ``L = T_cam,prev H_prev_cur T_cam,cur^-1``. For the "calibration" alignment this is exactly the
+- between submaps, between the previous submap's last node and this submap's first: the odometry
+  measurement, which the pipeline hands over in submap coordinates (``H_prev_cur``, measured on the
+  frames the two submaps share), moved onto the nodes: ``L = T_cam,prev H_prev_cur T_cam,cur^-1``.
+  With one shared frame these are that frame's two nodes. For the "calibration" alignment this is exactly the
   calibration-and-scale link ``K_prev^-1 K_cur diag(s, s, s, 1)`` (``sl4slam.alignment.sim3.calibration_scale_link``);
   for a 15-DOF fit it is that fit seen from the shared camera. Its information (from
   ``sl4slam.backend.evidence``, in the tangent of ``H_prev_cur``) is moved with it by the adjoint
@@ -96,7 +97,7 @@ class KeyframeBackend(Backend):
         T = np.asarray(frames.T_cam_submap, dtype=np.float64)
         if T.shape != (len(frames.frame_indices), 4, 4) or not np.isfinite(T).all():
             raise ValueError(f"submap {submap_id}: T_cam_submap must be finite, shape ({len(frames.frame_indices)}, 4, 4)")
-        return SubmapFrames(tuple(int(i) for i in frames.frame_indices), T, bool(frames.shared))
+        return SubmapFrames(tuple(int(i) for i in frames.frame_indices), T, int(frames.shared))
 
     def _new_nodes(self, count: int) -> list[int]:
         nodes = list(range(self._next_node, self._next_node + count))
@@ -132,11 +133,12 @@ class KeyframeBackend(Backend):
             if H_prev_cur is None:
                 raise ValueError(f"submap {submap_id} needs H_prev_cur (only the first submap takes None)")
             previous = self._submaps[self._order[-1]]
-            shared = previous.frames.frame_indices[-1]
-            if not frames.shared or frames.frame_indices[0] != shared:
-                raise ValueError(f"submap {submap_id} must start with the previous submap's last keyframe "
-                                 f"({shared}) to be linked to it; got frames {list(frames.frame_indices)}")
-            T_prev = previous.frames.T_cam_submap[-1]
+            shared = frames.frame_indices[:frames.shared]
+            if not shared or any(f not in previous.frames.frame_indices for f in shared):
+                raise ValueError(f"submap {submap_id} must start with keyframes of the previous submap "
+                                 f"({list(previous.frames.frame_indices)}) to be linked to it; "
+                                 f"got frames {list(frames.frame_indices)} with {frames.shared} shared")
+            T_prev = previous.frames.T_cam_submap[-1]  # the engine links a new node to the last one added
             link = T_prev @ np.asarray(H_prev_cur, dtype=np.float64) @ se3_inverse(T[0])
             moved = None if information is None else transport_information(information, T_prev, self._generators)
             self.nodes.add_node(nodes[0], normalize_sl4(link), moved)

@@ -40,6 +40,8 @@ brackets; every term is off when its magnitude is 0):
    like ``sqrt(position)`` would cancel that gain. *Window length.* Past ``camera_window_frames``
    frames all three errors grow in proportion to ``S / camera_window_frames`` (VGGT's quality
    falls as windows grow past about 100 frames; the linear growth is our assumption).
+   ``focal_consistency`` [-1: as ``frame_consistency``] sets the focal error's share alone: 0 draws
+   a frame's focal length afresh in every window (where a known calibration pays most).
    With ``frame_consistency = c``, a share ``c`` of the variance of a frame's focal error (and of
    its depth warp, 6.) is the frame's own, drawn from ``(seed, frame index)`` and so the same in
    every submap that contains the frame; the rest is drawn per submap.
@@ -347,8 +349,10 @@ class SimulatedFrontend:
         self, draw: Callable[[np.random.Generator], np.ndarray], submap_id: int, frame_index: int, term: int
     ) -> np.ndarray:
         """A unit-variance draw of one term: ``frame_consistency`` of its variance is the frame's own (the
-        same in every submap), the rest is drawn for this submap."""
+        same in every submap; ``focal_consistency`` for the focal error), the rest is drawn for this submap."""
         share = self.config.frame_consistency
+        if term == _FOCAL and self.config.focal_consistency >= 0:
+            share = self.config.focal_consistency
         submap_part = draw(self._frame_rng(submap_id, frame_index, term)) if share < 1 else 0.0
         if share == 0:
             return submap_part

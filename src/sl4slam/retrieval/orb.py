@@ -164,6 +164,9 @@ class OrbRetrieval:
         self._global = np.zeros((0, GLOBAL_DIM), np.float32)  # hashed tf rows, grown geometrically
         self.describe_seconds = 0.0  # time spent extracting features (the "descriptor model")
         self._stored_norm = np.zeros(0, np.float32)
+        # vocabulary-sized scratch of _dot_rows (allocated at its first call, all False / -1 between calls)
+        self._word_present: np.ndarray | None = None
+        self._word_lookup: np.ndarray | None = None
         # Features of the latest query batch, keyed by frame index, reused by the following add().
         self._pending: dict[int, tuple[np.ndarray, OrbFeatures]] = {}
 
@@ -319,40 +322,51 @@ class OrbRetrieval:
 
         Only the words the queries contain matter, so the stored entries are remapped onto that
         compact vocabulary and multiplied with a small dense matrix (a sparse-times-sparse product
-        over the full 2^18-word vocabulary costs several times more).
+        over the full 2^18-word vocabulary costs several times more). The vocabulary-sized mask and
+        look-up table persist between calls (only the entries a call set are reset), and the compact
+        matrix is built from int32 index arrays, which SciPy takes without converting them.
         """
-        selected = self._selected_rows_csr(rows)
-        present = np.zeros(self.vocabulary_size, dtype=bool)  # a mask over the vocabulary is
-        present[weighted.indices] = True  # several times cheaper than np.unique of the entries
+        data, indices, indptr = self._selected_entries(rows)
+        if self._word_lookup is None:
+            self._word_present = np.zeros(self.vocabulary_size, dtype=bool)
+            self._word_lookup = np.full(self.vocabulary_size, -1, np.int32)
+        present, lookup = self._word_present, self._word_lookup
+        present[weighted.indices] = True  # a mask over the vocabulary is several times cheaper than np.unique
         query_words = np.flatnonzero(present)
-        lookup = np.full(self.vocabulary_size, -1, np.int64)
-        lookup[query_words] = np.arange(len(query_words))
-        compact_query = np.zeros((len(query_words), weighted.shape[0]), np.float32)
-        query_of_entry = np.repeat(np.arange(weighted.shape[0]), np.diff(weighted.indptr))
-        # a query's words are distinct, so every (word, query) entry is written once
-        compact_query[lookup[weighted.indices], query_of_entry] = weighted.data
-        columns = lookup[selected.indices]
+        present[query_words] = False
+        lookup[query_words] = np.arange(len(query_words), dtype=np.int32)
+        try:
+            compact_query = np.zeros((len(query_words), weighted.shape[0]), np.float32)
+            query_of_entry = np.repeat(np.arange(weighted.shape[0]), np.diff(weighted.indptr))
+            # a query's words are distinct, so every (word, query) entry is written once
+            compact_query[lookup[weighted.indices], query_of_entry] = weighted.data
+            columns = lookup[indices]
+        finally:
+            lookup[query_words] = -1
         shared = columns >= 0
-        row_of_entry = np.repeat(np.arange(len(rows)), np.diff(selected.indptr))[shared]
+        # entries kept before each row boundary: the compact rows' pointers
+        kept_before = np.zeros(len(shared) + 1, np.int32)
+        np.cumsum(shared, out=kept_before[1:])
         compact_rows = scipy.sparse.csr_matrix(
-            (selected.data[shared], columns[shared], np.searchsorted(row_of_entry, np.arange(len(rows) + 1))),
-            shape=(len(rows), len(query_words)),
-        )
+            (data[shared], columns[shared], kept_before[indptr]), shape=(len(rows), len(query_words)))
         return compact_rows @ compact_query
 
-    def _selected_rows_csr(self, rows: np.ndarray) -> scipy.sparse.csr_matrix:
-        """Stored rows ``rows`` of the term-frequency matrix as ``(len(rows), V)`` CSR, gathered
-        straight from the buffers (cost follows those rows' entries, not the database's)."""
+    def _selected_entries(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Stored rows ``rows`` of the term-frequency matrix as CSR arrays ``(data, indices, indptr)``
+        (float32, int32, int64), gathered straight from the buffers (cost follows those rows'
+        entries, not the database's)."""
         rows = np.asarray(rows, dtype=np.int64)
         starts, stops = self._tf_indptr[rows], self._tf_indptr[rows + 1]
         lengths = stops - starts
         indptr = np.concatenate([[0], np.cumsum(lengths)])
         # positions starts[i] .. stops[i]-1 for every selected row, without a Python loop
         positions = np.repeat(starts - indptr[:-1], lengths) + np.arange(indptr[-1])
-        return scipy.sparse.csr_matrix(
-            (self._tf_data[positions], self._tf_indices[positions], indptr),
-            shape=(len(rows), self.vocabulary_size),
-        )
+        return self._tf_data[positions], self._tf_indices[positions], indptr
+
+    def _selected_rows_csr(self, rows: np.ndarray) -> scipy.sparse.csr_matrix:
+        """Stored rows ``rows`` of the term-frequency matrix as ``(len(rows), V)`` CSR."""
+        data, indices, indptr = self._selected_entries(rows)
+        return scipy.sparse.csr_matrix((data, indices, indptr), shape=(len(rows), self.vocabulary_size))
 
     def _inverted_file(self) -> tuple[scipy.sparse.csr_matrix | None, int]:
         """Inverted file ``(V, rows)`` CSR of the first ``rows`` stored keyframes' term frequencies.

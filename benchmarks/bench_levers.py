@@ -1,0 +1,271 @@
+"""Accuracy levers beyond VGGT-SLAM 2.0, measured on the same simulated frames: a grid of variants
+(graph design, link model, shared frames, known intrinsics, sensor scale) x simulator profiles x
+sequences x seeds, each run once and cached, with loops on (ORB retrieval).
+
+The baseline is VGGT-SLAM 2.0's design: the keyframe graph with one shared frame and the model's own
+intrinsics (calibration-and-scale links, no metric upgrade). Every variant is run on the same
+simulated submaps (same sequence, profile and seed), so the ratios compare designs, not draws.
+
+    python benchmarks/bench_levers.py --worlds synthetic,desk --profiles vggt,hard,strong --seeds 5 \\
+        --variants baseline,submap,sim3,known-k --workers 2
+
+Results accumulate in ``benchmarks/out/levers/runs.jsonl`` (a run already there is not run again);
+``--report`` writes ``benchmarks/results/levers.md`` from whatever is there. BLAS runs
+single-threaded: the runs are spread over processes instead.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_variable, "1")
+
+import argparse  # noqa: E402
+import datetime  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from concurrent.futures import ProcessPoolExecutor, as_completed  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from _report import write_report  # noqa: E402
+
+WORK = HERE / "out" / "levers"
+TUM_DESK = HERE.parents[1] / "shared" / "data" / "tum_rgbd_fr1_desk"
+WORLDS = {"synthetic": "synthetic world (600 frames, 320x240, one lap)", "desk": "TUM fr1/desk (613 frames)"}
+PROFILES = {
+    # name: (sim profile, explicit magnitudes, what it is)
+    "vggt": ("vggt", {}, "VGGT-like errors (per-frame cameras, focal, smooth depth warps, flying pixels)"),
+    "hard": ("hard", {}, "about twice the vggt errors"),
+    "strong": ("exact", {"perspective": 0.2, "shear": 0.05, "scale": 0.1},
+               "a strong projective distortion per submap and nothing else (the paper's premise)"),
+    "vggt-focal": ("vggt", {"focal_consistency": 0.0},
+                   "the vggt profile with each frame's focal error drawn afresh in every window"),
+}
+VARIANTS = {
+    # name: (settings, what it is)
+    "baseline": ({}, "VGGT-SLAM 2.0: keyframe graph, calibration links, 1 shared frame, the model's K"),
+    "submap": ({"backend.graph": "submap"}, "VGGT-SLAM: submap graph, 15-DOF links, metric upgrade"),
+    "sim3": ({"backend.kind": "sim3"}, "submap graph in Sim(3)"),
+    "keyframe+sl4": ({"alignment.model": "sl4"}, "keyframe graph with 15-DOF links"),
+    "hybrid": ({"alignment.model": "hybrid"}, "keyframe graph, calibration link unless the fit is 4x better"),
+    "known-k": ({"source.intrinsics": "auto"}, "baseline with the sequence's known K"),
+    "overlap2": ({"submap.overlap": 2}, "baseline with 2 shared frames"),
+    "overlap3": ({"submap.overlap": 3}, "baseline with 3 shared frames"),
+    "overlap2-known-k": ({"submap.overlap": 2, "source.intrinsics": "auto"}, "baseline with 2 shared frames and the known K"),
+    "select": ({"alignment.model": "select", "upgrade.mode": "on"},
+               "keyframe graph, link chosen per link by cross-validation, metric upgrade"),
+    "select2": ({"alignment.model": "select", "upgrade.mode": "on", "submap.overlap": 2},
+                "select with 2 shared frames"),
+    "select2-noup": ({"alignment.model": "select", "submap.overlap": 2}, "select2 without the metric upgrade"),
+    "submap2": ({"backend.graph": "submap", "submap.overlap": 2}, "submap graph with 2 shared frames"),
+    "defaults-sim3": ({"__defaults__": True, "backend.kind": "sim3"}, "the current defaults in Sim(3)"),
+    "defaults": ({"__defaults__": True}, "the current defaults"),
+    "defaults-known-k": ({"__defaults__": True, "source.intrinsics": "auto"}, "the defaults with the sequence's known K"),
+    "defaults-sensor": ({"__defaults__": True, "source.metric_depth": "sensor"},
+                        "the defaults with metric scale from the depth sensor"),
+}
+
+
+def world_path(name: str) -> Path:
+    if name == "desk":
+        return TUM_DESK
+    from sl4slam.synthetic import write_synthetic_sequence
+
+    path = WORK / "synthetic_320x240"
+    if not (path / "groundtruth.txt").is_file():
+        write_synthetic_sequence(path, num_frames=600, width=320, height=240, seed=0)
+    return path
+
+
+def make_config(profile: str, variant: str, seed: int):
+    from sl4slam.config import SLAMConfig
+
+    config = SLAMConfig(frontend="simulated")
+    sim_profile, magnitudes, _ = PROFILES[profile]
+    config.sim.profile, config.sim.seed = sim_profile, seed
+    for key, value in magnitudes.items():
+        setattr(config.sim, key, value)
+    config.retrieval.kind = "orb"
+    config.retrieval.seed = config.alignment.seed = seed
+    settings, _ = VARIANTS[variant]
+    if settings.get("__defaults__"):
+        for key, value in settings.items():
+            if key != "__defaults__":
+                section, _, name = key.partition(".")
+                setattr(getattr(config, section), name, value)
+    else:
+        # the baseline's settings, pinned, so that the baseline stays VGGT-SLAM 2.0 whatever the defaults become
+        config.backend.graph, config.alignment.model, config.submap.overlap = "keyframe", "calibration", 1
+        config.upgrade.mode = "off"
+        for key, value in settings.items():
+            section, _, name = key.partition(".")
+            setattr(getattr(config, section), name, value)
+        if settings.get("backend.graph") == "submap" or settings.get("backend.kind") == "sim3":
+            config.alignment.model, config.upgrade.mode = "auto", "auto"
+            if settings.get("backend.kind") == "sim3":
+                config.backend.graph = "submap"
+    return config
+
+
+def one_run(world: str, profile: str, variant: str, seed: int) -> dict:
+    from sl4slam.io import open_source
+    from sl4slam.metrics import ate
+    from sl4slam.pipeline import SLAMPipeline
+    from sl4slam.resolve import resolve
+
+    config = make_config(profile, variant, seed)
+    resolved = resolve(config)
+    start = time.perf_counter()
+    pipeline = SLAMPipeline(resolved)
+    counted = {"frames": 0}
+    reconstruct = pipeline.frontend.reconstruct
+
+    def counting(frames, submap_id, **kwargs):  # the cost: frames the model is given
+        counted["frames"] += len(frames)
+        return reconstruct(frames, submap_id, **kwargs)
+
+    pipeline.frontend.reconstruct = counting
+    result = pipeline.run(open_source(str(world_path(world)), resolved.config.source), progress=False)
+    seconds = time.perf_counter() - start
+    sim3 = ate(result.timestamps, result.T_world_cam, result.timestamps, result.T_world_cam_gt)
+    se3 = ate(result.timestamps, result.T_world_cam, result.timestamps, result.T_world_cam_gt, correct_scale=False)
+    loops = [e for e in result.edges if e.kind == "loop"]
+    models = [e.model for e in result.edges if e.kind == "odometry" and e.accepted]
+    return {"world": world, "profile": profile, "variant": variant, "seed": seed, "ate": sim3.rmse, "ate_se3": se3.rmse,
+            "scale": sim3.scale, "keyframes": len(result.keyframes), "frames": result.stats["frames"],
+            "submaps": result.stats["submaps"], "loops": sum(e.accepted for e in loops), "proposed": len(loops),
+            "fallbacks": result.stats["fallbacks"], "segments": result.stats["segments"],
+            "sl4_links": models.count("sl4"), "links": len(models), "seconds": seconds,
+            "frontend_seconds": result.stats["seconds_by_stage"].get("frontend", 0.0),
+            "frontend_frames": counted["frames"],
+            "date": str(datetime.date.today())}
+
+
+def load_runs() -> list[dict]:
+    path = WORK / "runs.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+
+
+def run_grid(worlds: list[str], profiles: list[str], variants: list[str], seeds: list[int], workers: int) -> None:
+    WORK.mkdir(parents=True, exist_ok=True)
+    for world in worlds:
+        world_path(world)  # rendered once, before the workers start
+    done = {(r["world"], r["profile"], r["variant"], r["seed"]) for r in load_runs()}
+    todo = [(w, p, v, s) for w in worlds for p in profiles for s in seeds for v in variants if (w, p, v, s) not in done]
+    print(f"{len(todo)} runs to do ({len(done)} cached)", flush=True)
+    with ProcessPoolExecutor(max_workers=workers) as pool, open(WORK / "runs.jsonl", "a") as log:
+        futures = {pool.submit(one_run, *task): task for task in todo}
+        for future in as_completed(futures):
+            task = futures[future]
+            try:
+                row = future.result()
+            except Exception as exc:  # a run that breaks is reported, the grid goes on
+                print(f"{task}: FAILED {type(exc).__name__}: {exc}", flush=True)
+                continue
+            log.write(json.dumps(row) + "\n")
+            log.flush()
+            print(f"{task}: ATE {row['ate']:.4f} m, {row['loops']}/{row['proposed']} loops, {row['seconds']:.0f} s",
+                  flush=True)
+
+
+def report(out: Path) -> None:
+    runs = load_runs()
+    lines = ["## Accuracy levers on the same frames (simulated frontend, loops on)", "",
+             f"Machine: {platform.machine()}, {os.cpu_count()} cores; runs dated {min(r['date'] for r in runs)} to "
+             f"{max(r['date'] for r in runs)}. Command: `python benchmarks/bench_levers.py ...` (grid in the tables). "
+             "ATE RMSE in metres after Sim(3) alignment (`evo_ape -as`), median and range over the seeds; "
+             "ratio: median of the per-seed ratios to the baseline on the same simulated frames.", ""]
+    for world in WORLDS:
+        for profile in PROFILES:
+            rows = [r for r in runs if r["world"] == world and r["profile"] == profile]
+            if not rows:
+                continue
+            base = {r["seed"]: r["ate"] for r in rows if r["variant"] == "baseline"}
+            lines += [f"**{WORLDS[world]}, {profile} profile** ({PROFILES[profile][2]})", "",
+                      "| variant | seeds | ATE median | range | / baseline (median, range) | SE(3) ATE median | "
+                      "loops accepted / proposed | 15-DOF links | fallbacks | segments | model frames / keyframe | "
+                      "run s (median) |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            for variant in VARIANTS:
+                chosen = sorted((r for r in rows if r["variant"] == variant), key=lambda r: r["seed"])
+                if not chosen:
+                    continue
+                ates = np.array([r["ate"] for r in chosen])
+                ratios = np.array([r["ate"] / base[r["seed"]] for r in chosen if r["seed"] in base])
+                ratio = f"{np.median(ratios):.2f} ({ratios.min():.2f}-{ratios.max():.2f})" if len(ratios) else "-"
+                lines.append(f"| {variant} | {len(chosen)} | {np.median(ates):.4f} | {ates.min():.4f}-{ates.max():.4f} | "
+                             f"{ratio} | {np.median([r['ate_se3'] for r in chosen]):.4f} | "
+                             f"{sum(r['loops'] for r in chosen)}/{sum(r['proposed'] for r in chosen)} | "
+                             f"{sum(r['sl4_links'] for r in chosen)}/{sum(r['links'] for r in chosen)} | "
+                             f"{np.mean([r['fallbacks'] for r in chosen]):.1f} | {np.mean([r['segments'] for r in chosen]):.1f} | "
+                             f"{_cost(chosen)} | {np.median([r['seconds'] for r in chosen]):.0f} |")
+            lines.append("")
+    lines += targets(runs)
+    lines += ["Variants: " + "; ".join(f"**{name}**: {text}" for name, (_, text) in VARIANTS.items()) + ".", ""]
+    write_report(out, lines)
+
+
+def _cost(rows: list[dict]) -> str:
+    """Frames the model was given per keyframe (runs recorded before this was counted: "-")."""
+    counted = [r["frontend_frames"] / r["keyframes"] for r in rows if "frontend_frames" in r]
+    return f"{np.median(counted):.2f}" if counted else "-"
+
+
+def _paired(runs: list[dict], world: str, profile: str, variant: str, other: str) -> np.ndarray:
+    """Per-seed ATE ratios ``variant / other`` on the same frames."""
+    mine = {r["seed"]: r["ate"] for r in runs if (r["world"], r["profile"], r["variant"]) == (world, profile, variant)}
+    theirs = {r["seed"]: r["ate"] for r in runs if (r["world"], r["profile"], r["variant"]) == (world, profile, other)}
+    return np.array([mine[k] / theirs[k] for k in sorted(mine) if k in theirs])
+
+
+def targets(runs: list[dict]) -> list[str]:
+    """The figures the defaults are held to, each a median of per-seed ratios (range)."""
+    checks = [("defaults / baseline", "defaults", "baseline", 0.8),
+              ("defaults with known K / defaults", "defaults-known-k", "defaults", 1.0),
+              ("baseline with known K / baseline", "known-k", "baseline", 1.0),
+              ("defaults (SL(4)) / defaults in Sim(3)", "defaults", "defaults-sim3", 0.75)]
+    lines = ["**Targets** (median of per-seed ratios, range; a dash: not run)", "",
+             "| world | profile | ratio | target | median (range) | seeds | met |", "|---|---|---|---|---|---|---|"]
+    for world in WORLDS:
+        for profile in PROFILES:
+            rows = [(name, _paired(runs, world, profile, a, b), goal) for name, a, b, goal in checks]
+            medians = {v: np.median([r["ate"] for r in runs if (r["world"], r["profile"], r["variant"]) == (world, profile, v)])
+                       for v in ("defaults", "baseline", "submap")
+                       if any((r["world"], r["profile"], r["variant"]) == (world, profile, v) for r in runs)}
+            for name, ratios, goal in rows:
+                if len(ratios):
+                    lines.append(f"| {world} | {profile} | {name} | <= {goal:g} | {np.median(ratios):.2f} "
+                                 f"({ratios.min():.2f}-{ratios.max():.2f}) | {len(ratios)} | "
+                                 f"{'yes' if np.median(ratios) <= goal else 'no'} |")
+            if {"defaults", "baseline", "submap"} <= medians.keys():
+                best = min(medians["baseline"], medians["submap"])
+                ratio = medians["defaults"] / best
+                lines.append(f"| {world} | {profile} | defaults / better of keyframe and submap graph (medians) | <= 1.5 | "
+                             f"{ratio:.2f} | | {'yes' if ratio <= 1.5 else 'no'} |")
+    return lines + [""]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--worlds", default="synthetic,desk")
+    parser.add_argument("--profiles", default="vggt,hard,strong")
+    parser.add_argument("--variants", default="baseline,submap,sim3,hybrid,known-k")
+    parser.add_argument("--seeds", default="5", help="a count (seeds 0..n-1) or a list (0,3,4)")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--report", action="store_true", help="only write the report from the runs there are")
+    parser.add_argument("--out", type=Path, default=HERE / "results" / "levers.md")
+    args = parser.parse_args()
+    if not args.report:
+        seeds = list(range(int(args.seeds))) if "," not in args.seeds else [int(s) for s in args.seeds.split(",")]
+        run_grid(args.worlds.split(","), args.profiles.split(","), args.variants.split(","), seeds, args.workers)
+    report(args.out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,115 @@
+"""Choosing, per link, between the calibration-and-scale link and the 15-DOF fit by cross-validation.
+
+Two models measure the link between consecutive submaps from their shared frames: the
+calibration-and-scale link (VGGT-SLAM 2.0: the frames' cameras and one free scale) and the 15-DOF
+projective fit (VGGT-SLAM: the frames' points). Which one is right depends on the error the model
+made. A projective distortion of a whole window (the paper's premise) is common to every frame of
+that window, and only the fit can express it. A frame's depth warp or camera error belongs to that
+frame alone; the fit absorbs it as a projective error that then bends the whole next submap, where
+the link, blind to it, does better. A margin on how much better the fit explains the shared frame
+(the ``hybrid`` model) cannot tell the two apart: both make the fit explain its own points better.
+
+Prediction tells them apart. With two or more shared frames, each model is measured on all of
+them but one and judged on the one left out: a distortion of the window, measured on the other
+frames, predicts it; another frame's warp does not. The fit is chosen only where it predicts the
+left-out frames better than the link at ``AlignmentConfig.select_confidence`` (a one-sided paired
+t-test over the left-out frames, each frame one observation: its pixels err together). That is a
+test at a conventional level, not a tuned margin; the gain it finds rests on per-frame errors being
+independent between frames (the simulator draws each frame's depth warp and camera error on its
+own), and a real model whose frames of one window err alike would make the link win more often.
+With one shared frame nothing is left to judge on, and the link, the model that assumes less, is
+kept.
+
+Degenerate shared frames (flat, or flat against their depth errors: ``SL4Aligner``) have no 15-DOF
+fit to choose: they get what the SL(4) aligner's ``planar_model`` gives them (the link, or the
+camera-constrained fit where it explains nearly every point and far more than the link). That is
+why this choice does not lose on them the way a margin on the fit's residual did: on a plane the
+fit's residual is small whatever its off-plane terms are, so a residual margin chose a fit that
+the plane did not determine; here such a fit is never a candidate, and a nearly planar frame's fit
+must still predict the left-out frames.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+
+from ..edges import is_camera_link
+from ..types import Alignment, FrameView
+from .ransac import transfer_errors
+from .shared import FrameMeasurements, link_from_shared_frames, mean_camera_link, measure_frames
+
+if TYPE_CHECKING:
+    from .aligner import CalibrationAligner, SL4Aligner
+
+def transfer_distances(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray) -> np.ndarray:
+    """``(n,)`` ``|X_a - H X_b|`` per pair (points mapped behind the camera: infinitely far)."""
+    r2, in_front = transfer_errors(np.asarray(H, dtype=np.float64)[None], X_a, X_b)
+    return np.sqrt(np.where(in_front[0], r2[0], np.inf))
+
+
+def fit_predicts_better(log_ratios: np.ndarray, confidence: float) -> bool:
+    """One-sided paired t-test over the held-out parts: is the fit's held-out error (log of its median
+    transfer distance over the link's, ``log_ratios`` ``(k,)``, one per held-out part) below the
+    link's at ``confidence``? The parts are the independent units: the pixels of one frame err
+    together (a smooth warp), so they are one observation, not thousands."""
+    mean = float(np.mean(log_ratios))
+    if len(log_ratios) < 2 or mean >= 0:
+        return False
+    spread = float(np.std(log_ratios, ddof=1))
+    if spread == 0.0:
+        return True
+    from scipy.stats import t
+
+    return mean + t.ppf(confidence, len(log_ratios) - 1) * spread / np.sqrt(len(log_ratios)) < 0
+
+
+def choose_link(fit_aligner: "SL4Aligner", link_aligner: "CalibrationAligner",
+                pairs: Sequence[tuple[FrameView, FrameView]], seed: int) -> Alignment:
+    """The link of ``pairs`` (the shared frames' views in the older and newer submap) by the
+    cross-validated choice of the module doc; ``extras["select"]`` records the held-out errors."""
+    fits = measure_frames(fit_aligner, pairs, seed)
+    links = measure_frames(link_aligner, pairs, seed)
+    link = link_from_shared_frames(link_aligner, pairs, seed, links)
+    fitted = link_from_shared_frames(fit_aligner, pairs, seed, fits)
+    if fitted.extras.get("degenerate"):  # the SL(4) aligner's own measurement of a degenerate frame
+        # a camera link: the first shared frame's own, which keeps that camera exactly, so that the
+        # metric frame can complete what the plane leaves free (``sl4slam.completion``)
+        chosen = fitted if not is_camera_link(fitted) else links.alignments[0] if links.frames[0] == 0 else link
+        chosen.extras["select"] = {"chosen": "degenerate", "why": fitted.fallback}
+        chosen.fallback = fitted.fallback
+        return chosen
+    common = [k for k in fits.frames if k in links.frames]
+    if len(common) < 2:
+        link.extras["select"] = {"chosen": "link", "why": "one shared frame: nothing held out to judge the fit on"}
+        return link
+    folds = _frame_folds(fit_aligner, pairs, fits, links, common, seed)
+    log_ratios = np.array([np.log(max(np.median(e_fit), 1e-12) / max(np.median(e_link), 1e-12)) for e_fit, e_link in folds])
+    better = fit_predicts_better(log_ratios, fit_aligner.config.select_confidence)
+    chosen = fitted if better else link
+    chosen.extras["select"] = {"chosen": "fit" if better else "link", "held_out_log_ratios": log_ratios.tolist()}
+    return chosen
+
+
+def _frame_folds(fit_aligner: "SL4Aligner", pairs: Sequence[tuple[FrameView, FrameView]], fits: FrameMeasurements,
+                 links: FrameMeasurements, frames: list[int], seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(fit distances, link distances)`` ``(n,)`` on each frame left out, both models measured on the
+    others (a degenerate fit there counts as the link: it cannot vote for terms it did not determine)."""
+    folds = []
+    for held in frames:
+        X_a, X_b = fits.points[fits.frames.index(held)]
+        train = [k for k in frames if k != held]
+        if len(train) == 1:  # the other frame's own measurements
+            fitted = fits.alignments[fits.frames.index(train[0])]
+        else:
+            view_a, view_b = pairs[train[0]]
+            fitted = fit_aligner.fit(np.concatenate([fits.points[fits.frames.index(k)][0] for k in train]),
+                                     np.concatenate([fits.points[fits.frames.index(k)][1] for k in train]),
+                                     view_a, view_b, seed + 100 + held)
+        at = [links.frames.index(k) for k in train]
+        H_link = mean_camera_link([links.alignments[i] for i in at], [pairs[k] for k in train],
+                                  [links.points[i] for i in at], fit_aligner.config.inlier_threshold).H
+        H_fit = H_link if fitted.extras.get("degenerate") else fitted.H
+        folds.append((transfer_distances(H_fit, X_a, X_b), transfer_distances(H_link, X_a, X_b)))
+    return folds

@@ -1,0 +1,157 @@
+"""One link between two submaps from every frame they share (``SubmapConfig.overlap``).
+
+Consecutive submaps may share several frames, each reconstructed in both. Each frame alone gives a
+measurement of ``H_a_b`` (``Aligner.align``); together they give one link, robust to one frame whose
+depth is bad in one of its reconstructions:
+
+- a model fitted to points (15-DOF SL(4), Sim(3) points) is fitted once to every shared frame's
+  points together, in RANSAC: each frame's cameras and depth constrain the one fit, one frame's
+  depth errors average out, and a frame whose points disagree with the others' is outvoted as
+  outliers (with two frames, RANSAC keeps the one more of whose points agree);
+- a link read from the cameras (calibration-and-scale, shared-frame Sim(3)) is the mean, in the
+  group's tangent, of the frames' own links, so per-frame camera errors average out; the scale,
+  the one thing such a link reads from the depth, is the median depth ratio of every frame's
+  pixels pooled, so a frame with wrongly scaled depth is outvoted by the others' pixels.
+
+The combined ``Alignment`` covers every usable frame's points; ``extras["shared_frames"]`` says how
+many frames it stands on, which the edge's evidence (``sl4slam.backend.evidence``) counts as
+independent witnesses, and ``extras["left_out"]`` why a frame could not be used (too few
+confident pixels, unusable cameras).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+from scipy.linalg import expm, logm
+
+from ..types import Alignment, FrameView
+from .common import make_alignment
+from .ransac import transfer_errors
+
+if TYPE_CHECKING:
+    from .aligner import PointAligner
+
+def tangent_mean(H: Sequence[np.ndarray], reference: np.ndarray) -> np.ndarray:
+    """The mean of 4x4 transforms ``H`` in the tangent at ``reference``:
+    ``reference exp(mean_k log(reference^-1 H_k))`` (Sim(3) stays Sim(3), SL(4) stays SL(4)).
+
+    Args:
+        H: transforms of one group, close to each other (measurements of one link).
+        reference: ``(4, 4)`` one of them (the consensus winner).
+    """
+    inverse = np.linalg.inv(reference)
+    steps = [np.real(logm(inverse @ np.asarray(h, dtype=np.float64))) for h in H]
+    return reference @ expm(np.mean(steps, axis=0))
+
+
+@dataclass
+class FrameMeasurements:
+    """Each shared frame measured alone.
+
+    Attributes:
+        frames: positions (in the caller's ``pairs``) of the frames that could be measured.
+        alignments: their own measurements; points: their ``(X_a, X_b)`` shared confident points.
+        problems: why the other frames could not be measured.
+    """
+
+    frames: list[int]
+    alignments: list[Alignment]
+    points: list[tuple[np.ndarray, np.ndarray]]
+    problems: list[str]
+
+
+def measure_frames(aligner: "PointAligner", pairs: Sequence[tuple[FrameView, FrameView]], seed: int) -> FrameMeasurements:
+    """Every shared frame measured alone by ``aligner`` (frame ``k`` with seed ``seed + k``)."""
+    measured = FrameMeasurements([], [], [], [])
+    for k, (view_a, view_b) in enumerate(pairs):
+        try:
+            X_a, X_b = aligner.pairs(view_a, view_b)
+            alignment = aligner.fit(X_a, X_b, view_a, view_b, seed + k)
+        except ValueError as exc:
+            measured.problems.append(f"frame {k}: {exc}")
+            continue
+        measured.frames.append(k)
+        measured.alignments.append(alignment)
+        measured.points.append((X_a, X_b))
+    if not measured.frames:
+        raise ValueError("no shared frame can be aligned (" + "; ".join(measured.problems) + ")")
+    return measured
+
+
+def link_from_shared_frames(aligner: "PointAligner", pairs: Sequence[tuple[FrameView, FrameView]], seed: int,
+                            measured: FrameMeasurements | None = None) -> Alignment:
+    """The link ``X_a ~ H X_b`` from every shared frame (module doc).
+
+    Args:
+        aligner: the run's aligner (its model measures each frame, and fits the points together
+            when it fits points).
+        pairs: ``(view in a, view in b)`` of each shared frame, oldest first.
+        seed: seed of the fits (frame ``k`` uses ``seed + k``, the joint fit ``seed``).
+        measured: the frames already measured by this aligner (:func:`measure_frames`).
+
+    Raises:
+        ValueError: no shared frame can be aligned (each frame's reason, joined).
+    """
+    if len(pairs) == 1 and measured is None:
+        return aligner.align(pairs[0][0], pairs[0][1], seed)
+    measured = measured or measure_frames(aligner, pairs, seed)
+    own, points = measured.alignments, measured.points
+    if len(own) == 1:
+        link = own[0]
+    elif aligner.fits_points:
+        first = pairs[measured.frames[0]]
+        link = aligner.fit(np.concatenate([p[0] for p in points]), np.concatenate([p[1] for p in points]),
+                           first[0], first[1], seed)
+    else:
+        link = mean_camera_link(own, [pairs[k] for k in measured.frames], points, aligner.config.inlier_threshold)
+    link.extras["shared_frames"] = len(own)
+    link.extras["frames_used"] = list(measured.frames)
+    link.extras["per_frame"] = list(own)  # each frame's own link: their scatter calibrates the loop gate
+    if measured.problems:
+        link.extras["left_out"] = list(measured.problems)
+    return link
+
+
+def pooled_scale(views_a: Sequence[FrameView], views_b: Sequence[FrameView],
+                 points: Sequence[tuple[np.ndarray, np.ndarray]]) -> float:
+    """Median ratio ``z_a / z_b`` of every frame's point depths (each in its own camera in each
+    submap), all frames' pixels pooled."""
+    ratios = []
+    for view_a, view_b, (X_a, X_b) in zip(views_a, views_b, points):
+        z_a = X_a @ view_a.T_cam_submap[2, :3] + view_a.T_cam_submap[2, 3]
+        z_b = X_b @ view_b.T_cam_submap[2, :3] + view_b.T_cam_submap[2, 3]
+        usable = (z_a > 0) & (z_b > 0)
+        ratios.append(z_a[usable] / z_b[usable])
+    return float(np.median(np.concatenate(ratios)))
+
+
+def rescaled_link(link: Alignment, view_a: FrameView, scale: float) -> np.ndarray:
+    """A camera link ``T_a_cam [[s A, 0], [0, 1]] T_cam_b`` with its scale ``s`` replaced by ``scale``."""
+    T = np.asarray(view_a.T_cam_submap, dtype=np.float64)
+    T = np.vstack([T[:3], [0.0, 0.0, 0.0, 1.0]])
+    S = np.diag([scale / link.extras["scale"]] * 3 + [1.0])
+    return np.linalg.inv(T) @ S @ T @ link.H
+
+
+def mean_camera_link(links: Sequence[Alignment], pairs: Sequence[tuple[FrameView, FrameView]],
+                     points: Sequence[tuple[np.ndarray, np.ndarray]], threshold: float) -> Alignment:
+    """The camera links of several frames as one: each with the pooled scale (:func:`pooled_scale`),
+    then their tangent mean; scored (not fitted) on every frame's points.
+
+    Args:
+        links: each frame's own camera link (``extras["scale"]`` its scale).
+        pairs: the frames' ``(view in a, view in b)``; points: their ``(X_a, X_b)`` shared points.
+        threshold: inlier distance for the reported inlier ratio.
+    """
+    scale = pooled_scale([a for a, _ in pairs], [b for _, b in pairs], points)
+    H = tangent_mean([rescaled_link(link, view_a, scale) for link, (view_a, _) in zip(links, pairs)], links[0].H)
+    X_a = np.concatenate([p[0] for p in points])
+    X_b = np.concatenate([p[1] for p in points])
+    r2, in_front = transfer_errors(H[None], X_a, X_b)
+    fallbacks = [a.fallback for a in links if a.fallback]
+    return make_alignment(H, X_a, X_b, np.ones(len(X_a), dtype=bool), (r2[0] < threshold**2) & in_front[0], r2[0],
+                          links[0].model, fallback=fallbacks[0] if fallbacks else None,
+                          extras=dict(links[0].extras, scale=scale), fitted=False)
