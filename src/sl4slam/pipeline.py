@@ -31,7 +31,6 @@ Nothing that goes wrong inside a submap ends a run:
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -46,14 +45,13 @@ from .config import SLAMConfig, SourceConfig
 from .edges import EdgeReport, camera_problem, edge_problem
 from .errors import UserError
 from .geometry import normalize_sl4, to_4x4
-from .intrinsics import FOCAL_RATIO_WARNING, KnownIntrinsics, focal_ratios, from_source, on_grid
 from .keyframes import KeyframeSelector
 from .loops import LoopEvidence, LoopVerifier, grey_for_check
 from .metric_frame import MetricFrame
 from .progress import Progress, StageTimer
 from .resolve import ResolvedConfig, resolve
 from .result import SLAMResult, SourceColors, keyframe_cameras
-from .sensor_scale import scaled, sensor_scale
+from .source_knowledge import SourceKnowledge
 from .submap import StoredKeyframe, confidence_levels, confidence_mask, submap_points
 from .types import (Aligner, Alignment, Frame, FrameSource, FrameView, Frontend, FrontendCapabilities, LoopCandidate,
                     Retrieval, SubmapPrediction)
@@ -224,10 +222,7 @@ class SLAMPipeline:
         self._shared_views: dict[int, FrameView] = {}  # ... at full precision, as their submap reconstructed them
         self._source: FrameSource | None = None
         self._frames_read = 0
-        self.known_intrinsics: KnownIntrinsics | None = None  # set by consume() from the source
-        self._focal_ratios: list[float] = []  # the model's focal over the known one, per frame
-        self._sensor_scales: dict = {"measured": [], "kept": 0}
-        self._last_scale = 1.0
+        self.knowledge = SourceKnowledge(self.config, self.frontend)  # consume() makes the source's own
         self._reporter = Progress(None, enabled=False)  # consume() makes the run's own
         self.colors: SourceColors | None = None  # the keyframes' colours, re-read from the source
 
@@ -251,7 +246,7 @@ class SLAMPipeline:
         problem = source_problem(source, self.frontend.capabilities, self.frontend.name, self.config.source)
         if problem:
             raise UserError(problem)
-        self.known_intrinsics = from_source(source, self.config.source.intrinsics)
+        self.knowledge = SourceKnowledge(self.config, self.frontend, source)
         self.colors = SourceColors(source, self.frontend)
         self._source = source
         pending: list[Frame] = []
@@ -294,12 +289,6 @@ class SLAMPipeline:
         if is_keyframe and frame.T_world_cam is not None:
             self._gt[frame.index] = np.asarray(frame.T_world_cam, dtype=np.float64)
         return is_keyframe
-
-    @property
-    def _model_takes_intrinsics(self) -> bool:
-        """The known intrinsics go to the model too (one that accepts them, unless switched off)."""
-        return (self.known_intrinsics is not None and self.frontend.capabilities.accepts_intrinsics
-                and self.config.source.intrinsics_to_model)
 
     @property
     def num_loops(self) -> int:
@@ -351,8 +340,9 @@ class SLAMPipeline:
         pairs = self._match_pairs(work)
         if pairs:  # only frontends asked for attention scores need to know the keyword
             keywords["match_pairs"] = pairs
-        if self._model_takes_intrinsics:
-            keywords["intrinsics"] = np.repeat(self.known_intrinsics.K[None], len(work.frames), axis=0)
+        known_K = self.knowledge.model_intrinsics(len(work.frames))
+        if known_K is not None:
+            keywords["intrinsics"] = known_K
         start = time.perf_counter()
         try:
             prediction = self.frontend.reconstruct(work.frames, work.submap_id, **keywords)
@@ -399,7 +389,7 @@ class SLAMPipeline:
         the graph could not take it (it is dropped, and the next submap shares the frame before it)."""
         timer = StageTimer()
         with timer("points"):
-            prediction = self.calibrate(work, prediction)
+            prediction = self.knowledge.apply(work.frames, prediction)
             dense = self.dense_submap(work, prediction)
         with timer("alignment"):
             odometry = self.align_odometry(work, dense)
@@ -415,35 +405,6 @@ class SLAMPipeline:
         work.seconds.update(timer.seconds)
         self._account(work)
         return added
-
-    def calibrate(self, work: SubmapInput, prediction: SubmapPrediction) -> SubmapPrediction:
-        """The prediction with what the source knows: the known intrinsics in place of the model's
-        (``sl4slam.intrinsics``) and the sensor's metric scale (``sl4slam.sensor_scale``)."""
-        if self.known_intrinsics is not None:
-            if prediction.image_to_grid is None and prediction.depth.shape[1:] != work.frames[0].rgb.shape[:2]:
-                raise UserError(f"the {self.frontend.name} frontend does not say how its grid maps the input frames; "
-                                "--intrinsics cannot be used with it")
-            A = prediction.image_to_grid if prediction.image_to_grid is not None else np.eye(3)[None].repeat(len(work.frames), 0)
-            K = on_grid(self.known_intrinsics.K, A)
-            ratios = focal_ratios(np.asarray(prediction.K, np.float64), K)
-            ratios = ratios[np.isfinite(ratios)]  # a frame without a positive model focal has none to compare
-            if len(ratios) and not self._focal_ratios and not FOCAL_RATIO_WARNING[0] <= float(np.median(ratios)) <= FOCAL_RATIO_WARNING[1]:
-                log.warning("the model's focal length is %.2f times the given intrinsics' (%s) in the first submap: "
-                            "check that they are for this camera and resolution", float(np.median(ratios)),
-                            self.known_intrinsics.origin)
-            self._focal_ratios.extend(ratios.tolist())
-            prediction = dataclasses.replace(prediction, K=K)
-        if self.config.source.metric_depth == "sensor":
-            mask = confidence_mask(prediction.confidence, prediction.depth, self.config.submap.tau_conf)
-            scale, votes = sensor_scale(work.frames, prediction, mask)
-            if scale is None:
-                self._sensor_scales["kept"] += 1
-                scale = self._last_scale
-            else:
-                self._sensor_scales["measured"].append(scale)
-                self._last_scale = scale
-            prediction = scaled(prediction, scale)
-        return prediction
 
     def dense_submap(self, work: SubmapInput, prediction: SubmapPrediction) -> DenseSubmap:
         """Confidence masks for the submap, and points for the frames that are aligned: the shared
@@ -684,33 +645,6 @@ class SLAMPipeline:
         except (RuntimeError, ValueError) as exc:
             raise UserError(f"the graph cannot be solved at the end of the run ({exc}); no trajectory can be written") from None
 
-    def _source_knowledge(self) -> dict:
-        """What the known intrinsics and the sensor's scale did, for the summary."""
-        out: dict = {}
-        if self.known_intrinsics is not None:
-            ratios = np.asarray(self._focal_ratios)
-            out["intrinsics"] = {
-                "K": [round(v, 4) for v in self.known_intrinsics.values()], "origin": self.known_intrinsics.origin,
-                "note": self.known_intrinsics.note, "model_given_it": self._model_takes_intrinsics,
-                "model_focal_ratio": {"median": round(float(np.median(ratios)), 4), "min": round(float(ratios.min()), 4),
-                                      "max": round(float(ratios.max()), 4)} if len(ratios) else None}
-        if self.config.source.metric_depth == "sensor":
-            measured = self._sensor_scales["measured"]
-            out["metric_depth"] = {"submaps_scaled": len(measured), "kept_neighbour_scale": self._sensor_scales["kept"],
-                                   "scale_median": round(float(np.median(measured)), 5) if measured else None}
-        return out
-
-    def _calibration_notes(self) -> list[str]:
-        """A warning when the model's focal disagrees wildly with the known one (a wrong file?)."""
-        if self.known_intrinsics is None or not self._focal_ratios:
-            return []
-        median = float(np.median(self._focal_ratios))
-        low, high = FOCAL_RATIO_WARNING
-        if low <= median <= high:
-            return []
-        return [f"the model's focal length is {median:.2f} times the given one ({self.known_intrinsics.origin}); "
-                "the given intrinsics were used: check that they are for this camera and resolution"]
-
     def snapshot(self, metric_upgrade: bool = False) -> SLAMResult:
         """The result under iSAM2's current estimate (no polish): for checkpoints and live viewers;
         ``metric_upgrade`` also upgrades it (about 0.1 s for 500 keyframes)."""
@@ -736,8 +670,8 @@ class SLAMPipeline:
             "segments": int(segments.max()) + 1 if len(segments) else 0,
             "dropped_frames": dict(self.dropped),
             "frontend_failures": list(self.frontend_failures),
-            "notes": list(self.notes) + self._calibration_notes(),
-            **self._source_knowledge(),
+            "notes": list(self.notes) + self.knowledge.notes(),
+            **self.knowledge.summary(),
             "seconds_by_stage": dict(self.timer.seconds),
             "stored_bytes": int(sum(k.nbytes for k in keyframes)),
             "seconds_per_submap": {
