@@ -18,8 +18,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..errors import UserError
 from ..atomic import atomic_write_npz
+from ..errors import UserError
 from ..types import Frame, Frontend, FrontendCapabilities, SubmapPrediction
 
 _FIELDS = ("depth", "confidence", "T_cam_submap", "K", "colors", "points", "points_confidence", "principal_point",

@@ -38,27 +38,24 @@ from ..models.da3.cameras import submap_arrays
 from ..models.da3.config import released
 from ..models.da3.memory import GIB, largest_fitting_frames, plan_memory
 from ..models.da3.model import DepthAnything3
-from ..models.da3.preprocess import PROCESS_RES, Preprocessed, intrinsics_on_grid, preprocess_images
+from ..models.da3.preprocess import (
+    PROCESS_RES,
+    Preprocessed,
+    intrinsics_on_grid,
+    preprocess_images,
+)
 from ..models.da3.weights import resolve_precision
 from ..models.vggt.preprocess import GridTransform
 from ..registry import FrontendEntry
-from .vggt import grid_affine
 from ..types import Frame, FrontendCapabilities, SubmapPrediction
+from .device import resolve_device  # noqa: F401  (part of this module's API)
+from .vggt import grid_affine
 
 logger = logging.getLogger(__name__)
 
 CAMERA_SOURCES = ("head", "rays")
 #: Seed of the ray fit's random draws (every window draws the same way: runs repeat exactly).
 RAY_SEED = 0
-
-
-def resolve_device(device: str) -> torch.device:
-    """"auto" -> CUDA when available, else CPU; otherwise the named device."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError("--device cuda was requested but no CUDA GPU is available; use --device cpu")
-    return torch.device(device)
 
 
 class DA3Frontend:

@@ -44,9 +44,15 @@ from ..models.pi3.cameras import (
     to_model_intrinsics,
 )
 from ..models.pi3.model import VARIANTS, Pi3, Pi3Config, Pi3X
-from ..models.pi3.preprocess import PATCH_SIZE, PIXEL_BUDGET, ResizeTransform, preprocess_images
+from ..models.pi3.preprocess import (
+    PATCH_SIZE,
+    PIXEL_BUDGET,
+    ResizeTransform,
+    preprocess_images,
+)
 from ..models.pi3.weights import WEIGHTS_SOURCES
 from ..types import Frame, FrontendCapabilities, SubmapPrediction
+from .device import resolve_device  # noqa: F401  (part of this module's API)
 
 logger = logging.getLogger(__name__)
 
@@ -67,15 +73,6 @@ CAPABILITIES = {
 _TOKEN_BYTES_PER_CHANNEL = 64
 _CONV_HEAD_BYTES_PER_PIXEL = 1100
 _OUTPUT_BYTES_PER_PIXEL = 64
-
-
-def resolve_device(device: str) -> torch.device:
-    """"auto" -> CUDA when available, else CPU; otherwise the named device."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError(f"device {device} was requested but no CUDA GPU is available; use device cpu")
-    return torch.device(device)
 
 
 def resolve_compute_dtype(dtype: str, device: torch.device) -> torch.dtype | None:

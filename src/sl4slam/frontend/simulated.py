@@ -185,7 +185,13 @@ from scipy.special import ndtr
 
 from ..config import SimulatorConfig
 from ..errors import UserError
-from ..geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse, unproject_depth
+from ..geometry import (
+    apply_transform,
+    decompose_projection,
+    normalize_sl4,
+    se3_inverse,
+    unproject_depth,
+)
 from ..types import Frame, FrontendCapabilities, SubmapPrediction
 from .overlap import overlap_match_ratio
 

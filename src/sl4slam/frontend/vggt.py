@@ -43,20 +43,12 @@ from ..models.vggt.precision import Precision, apply_precision, resolve_precisio
 from ..models.vggt.preprocess import GridTransform, preprocess_images, to_uint8_rgb
 from ..registry import FrontendEntry
 from ..types import Frame, FrontendCapabilities, SubmapPrediction
+from .device import resolve_device  # noqa: F401  (part of this module's API)
 
 logger = logging.getLogger(__name__)
 
 # Largest image side on VGGT's grid (both preprocessing modes): the worst case for memory.
 _GRID_SIDE = 518
-
-
-def resolve_device(device: str) -> torch.device:
-    """"auto" -> CUDA when available, else CPU; otherwise the named device."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError("--device cuda was requested but no CUDA GPU is available; use --device cpu")
-    return torch.device(device)
 
 
 def resolve_mode(dtype: str, device: torch.device) -> Precision:

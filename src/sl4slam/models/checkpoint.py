@@ -211,3 +211,34 @@ def describe_checkpoint(state_dict: Mapping[str, Any]) -> str:
             continue
     sample = ", ".join(sorted(state_dict)[:3])
     return f"weights of an unknown model (keys like {sample})"
+
+
+def write_checkpoint(state_dict: Mapping[str, Any], path: str | os.PathLike, config_key: str,
+                     config_json: str | None = None) -> Path:
+    """Write a torch state dict to ``path``: ``.safetensors`` with the model's config (JSON) in the
+    metadata under ``config_key``, or a ``.pt`` holding ``{"model": tensors, config_key: config}``
+    (by suffix). Tensors that share storage get their own copy (safetensors refuses shared memory)."""
+    import torch
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tensors: dict = {}
+    seen: set[int] = set()
+    for key, value in state_dict.items():
+        value = value.detach().cpu().contiguous()
+        pointer = value.untyped_storage().data_ptr()
+        tensors[key] = value.clone() if pointer in seen else value
+        seen.add(pointer)
+    if path.suffix == ".safetensors":
+        from safetensors.torch import save_file
+
+        metadata = {"format": "pt"}
+        if config_json is not None:
+            metadata[config_key] = config_json
+        save_file(tensors, str(path), metadata=metadata)
+    else:
+        payload: dict = {"model": tensors}
+        if config_json is not None:
+            payload[config_key] = json.loads(config_json)
+        torch.save(payload, path)
+    return path

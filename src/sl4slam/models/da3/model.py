@@ -15,8 +15,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from ..random_weights import init_random_weights  # noqa: F401  (part of this module's API)
 from .backbone import DA3Backbone
-from .camera import CameraDecoder, CameraEncoder, as_homogeneous, decode_pose_encoding, invert_rigid
+from .camera import (
+    CameraDecoder,
+    CameraEncoder,
+    as_homogeneous,
+    decode_pose_encoding,
+    invert_rigid,
+)
 from .config import DA3Config
 from .head import DualDPT
 from .rays import extrinsics_intrinsics_from_rays
@@ -139,21 +146,3 @@ def count_parameters(config: DA3Config) -> int:
     return sum(p.numel() for p in build_da3(config, device="meta").parameters())
 
 
-@torch.no_grad()
-def init_random_weights(model: nn.Module, seed: int = 0, std: float = 0.02) -> nn.Module:
-    """Fill every parameter with seeded random values (weights ~ N(0, std^2), norm scales 1 + N(0, std^2),
-    LayerScales 0.05 + |N(0, std^2)|), materialising meta parameters on the CPU first. For tests and
-    benchmarks: the cost of a forward does not depend on the values."""
-    if any(p.is_meta for p in model.parameters()):
-        model.to_empty(device="cpu")
-    generator = torch.Generator().manual_seed(seed)
-    for name, param in model.named_parameters():
-        noise = torch.empty(param.shape, dtype=torch.float32).normal_(0.0, std, generator=generator)
-        if name.endswith(".gamma"):
-            value = 0.05 + noise.abs()
-        elif param.ndim == 1 and "norm" in name and name.endswith("weight"):
-            value = 1.0 + noise
-        else:
-            value = noise
-        param.copy_(value.to(param.dtype))
-    return model

@@ -26,7 +26,7 @@ from typing import Mapping
 import torch
 
 from ...errors import UserError
-from ..checkpoint import describe_checkpoint
+from ..checkpoint import describe_checkpoint, write_checkpoint
 from ..checkpoint import read_checkpoint as read_weights_file
 from ..hub import WeightsSource, resolve_weights
 from .model import VARIANTS, Pi3, Pi3Config, Pi3X, build_pi3, parameter_count
@@ -240,28 +240,7 @@ def load_pi3(
 
 def save_checkpoint(state_dict: Mapping[str, torch.Tensor], path: str | Path, config: Pi3Config | None = None) -> Path:
     """Write a state dict as ``.safetensors`` (config in the metadata when given) or ``.pt``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tensors: dict[str, torch.Tensor] = {}
-    seen: set[int] = set()
-    for key, value in state_dict.items():
-        value = value.detach().cpu().contiguous()
-        pointer = value.untyped_storage().data_ptr()
-        tensors[key] = value.clone() if pointer in seen else value  # safetensors refuses shared storage
-        seen.add(pointer)
-    if path.suffix == ".safetensors":
-        from safetensors.torch import save_file
-
-        metadata = {"format": "pt"}
-        if config is not None:
-            metadata[CONFIG_METADATA_KEY] = config.to_json()
-        save_file(tensors, str(path), metadata=metadata)
-    else:
-        payload: dict = {"model": tensors}
-        if config is not None:
-            payload[CONFIG_METADATA_KEY] = json.loads(config.to_json())
-        torch.save(payload, path)
-    return path
+    return write_checkpoint(state_dict, path, CONFIG_METADATA_KEY, config.to_json() if config is not None else None)
 
 
 def convert_checkpoint(src: str, dst: str | Path, variant: str = "pi3", dtype: str = "fp32") -> Path:

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
+from ..random_weights import init_random_weights  # noqa: F401  (part of this module's API)
 from .aggregator import Aggregator
 from .camera_head import CameraHead
 from .dpt_head import DPTHead
@@ -204,23 +205,3 @@ def build_vggt(config: VGGTModelConfig | None = None, device: torch.device | str
         return VGGT(config)
 
 
-@torch.no_grad()
-def init_random_weights(model: nn.Module, seed: int = 0, std: float = 0.02) -> nn.Module:
-    """Fill every parameter with seeded random values (weights ~ N(0, std^2), norm scales 1 + N(0, std^2),
-    biases and LayerScales small), materialising meta parameters on CPU first.
-
-    Used for benchmarks and tests: the cost of a forward pass does not depend on the values.
-    """
-    if any(p.is_meta for p in model.parameters()):
-        model.to_empty(device="cpu")
-    generator = torch.Generator().manual_seed(seed)
-    for name, param in model.named_parameters():
-        noise = torch.empty(param.shape, dtype=torch.float32).normal_(0.0, std, generator=generator)
-        if name.endswith(".gamma"):
-            value = 0.05 + noise.abs()
-        elif param.ndim == 1 and ("norm" in name) and name.endswith("weight"):
-            value = 1.0 + noise
-        else:
-            value = noise
-        param.copy_(value.to(param.dtype))
-    return model

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from ...errors import UserError
-from ..checkpoint import describe_checkpoint
+from ..checkpoint import describe_checkpoint, write_checkpoint
 from ..checkpoint import read_checkpoint as read_weights_file
 from ..hub import DEFAULT_HUB_ID, VGGT_WEIGHTS, resolve_weights
 from .model import SKIPPED_PREFIXES, VGGT, VGGTModelConfig
@@ -175,29 +175,7 @@ def load_vggt(
 
 def save_checkpoint(state_dict: dict[str, torch.Tensor], path: str | Path, config: VGGTModelConfig | None = None) -> Path:
     """Write a state dict as ``.safetensors`` (config embedded when given) or ``.pt`` (by suffix)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tensors: dict[str, torch.Tensor] = {}
-    seen: set[int] = set()
-    for key, value in state_dict.items():
-        value = value.detach().cpu().contiguous()
-        # safetensors refuses tensors sharing memory: give repeated storages their own copy.
-        pointer = value.untyped_storage().data_ptr()
-        tensors[key] = value.clone() if pointer in seen else value
-        seen.add(pointer)
-    if path.suffix == ".safetensors":
-        from safetensors.torch import save_file
-
-        metadata = {"format": "pt"}
-        if config is not None:
-            metadata[CONFIG_METADATA_KEY] = config.to_json()
-        save_file(tensors, str(path), metadata=metadata)
-    else:
-        payload: dict = {"model": tensors}
-        if config is not None:
-            payload[CONFIG_METADATA_KEY] = json.loads(config.to_json())
-        torch.save(payload, path)
-    return path
+    return write_checkpoint(state_dict, path, CONFIG_METADATA_KEY, config.to_json() if config is not None else None)
 
 
 def convert_checkpoint(src: str | Path, dst: str | Path, dtype: str = "fp32") -> Path:
