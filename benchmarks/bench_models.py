@@ -30,6 +30,7 @@ sys.path.insert(0, str(HERE))
 from _report import write_report  # noqa: E402
 from bench_da3 import _date, _frames, _reset_vm_hwm, _vm_hwm_bytes, machine  # noqa: E402
 
+RECORDS = HERE / "out" / "models" / "records.jsonl"
 MODELS = ("vggt", "da3-small", "da3-base", "da3-large", "da3-giant", "pi3", "pi3x")
 SEED = 0
 
@@ -140,13 +141,25 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per model")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "models.md")
+    parser.add_argument("--report", action="store_true", help="only write the report from the kept records")
+    parser.add_argument("--report-command", default="--frames 17", help="the command line the records came from")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         import torch
 
         torch.set_num_threads(args.threads)
-        print(json.dumps(child(args.child, args.frames)))
+        record = child(args.child, args.frames)
+        RECORDS.parent.mkdir(parents=True, exist_ok=True)
+        with open(RECORDS, "a") as log:  # kept as each model finishes: a long grid loses nothing
+            log.write(json.dumps(record) + "\n")
+        print(json.dumps(record))
+        return
+    if args.report:
+        records = [json.loads(line) for line in RECORDS.read_text().splitlines() if line.strip()]
+        latest = {(r["model"], r["frames"]): r for r in records}  # the newest record of each model and size
+        write_report(args.out, report(list(latest.values()), "python benchmarks/bench_models.py " + args.report_command,
+                                      args.threads))
         return
     records = [run_child(name, args.frames, args.threads, args.timeout) for name in args.models]
     command = "python benchmarks/bench_models.py " + " ".join(sys.argv[1:])
