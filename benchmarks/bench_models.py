@@ -60,18 +60,10 @@ def build_frontend(name: str):
         model = init_da3(build_da3(ARCHITECTURES[size], device="meta"), seed=SEED).eval()
         return DA3Frontend(size=size, device="cpu", dtype="fp32", model=model)
     if name in ("pi3", "pi3x"):
+        from bench_pi3 import random_frontend_model
         from sl4slam.frontend.pi3 import Pi3Frontend
-        from sl4slam.models.pi3 import Pi3Config, build_pi3
-        from sl4slam.models.pi3.model import IMAGE_MEAN, IMAGE_STD
 
-        config = Pi3Config(variant=name)
-        if name == "pi3x":  # as the frontend loads it: the intrinsics branch only
-            config.depth_condition, config.pose_inject_blocks = False, 0
-        model = init_random_weights(build_pi3(config, device="meta"), seed=SEED).eval()
-        with torch.no_grad():  # buffers are not parameters: restore the image normalisation
-            model.image_mean.copy_(torch.tensor(IMAGE_MEAN).view(1, 3, 1, 1))
-            model.image_std.copy_(torch.tensor(IMAGE_STD).view(1, 3, 1, 1))
-        return Pi3Frontend(name, device="cpu", dtype="fp32", model=model)
+        return Pi3Frontend(name, device="cpu", dtype="fp32", model=random_frontend_model(name, SEED))
     raise SystemExit(f"unknown model {name!r}: use one of {', '.join(MODELS)}")
 
 

@@ -234,6 +234,25 @@ def parity_section(results: list[dict], argv: str) -> list[str]:
 
 # ---- timing ---------------------------------------------------------------------------------------
 
+
+def random_frontend_model(variant: str, seed: int):
+    """Full-size π³ / Pi3X with seeded random weights, as the frontend loads it (Pi3X: its intrinsics
+    branch only), the image normalisation buffers restored."""
+    import torch
+
+    from sl4slam.models.pi3 import Pi3Config, build_pi3
+    from sl4slam.models.pi3.model import IMAGE_MEAN, IMAGE_STD
+    from sl4slam.models.random_weights import init_random_weights
+
+    config = Pi3Config(variant=variant)
+    if variant == "pi3x":
+        config.depth_condition, config.pose_inject_blocks = False, 0
+    model = init_random_weights(build_pi3(config, device="meta"), seed=seed).eval()
+    with torch.no_grad():  # buffers are not parameters
+        model.image_mean.copy_(torch.tensor(IMAGE_MEAN).view(1, 3, 1, 1))
+        model.image_std.copy_(torch.tensor(IMAGE_STD).view(1, 3, 1, 1))
+    return model
+
 def timing_child(variant: str, who: str, frames: int, reference: str | None) -> dict:
     """One forward of ``frames`` frames: ``who`` = "ours" (the frontend's reconstruct, efficient
     kernel) or "theirs" (the authors' forward, float32 CPU)."""
@@ -246,19 +265,9 @@ def timing_child(variant: str, who: str, frames: int, reference: str | None) -> 
     start = time.perf_counter()
     if who == "ours":
         from sl4slam.frontend.pi3 import Pi3Frontend
-        from sl4slam.models.pi3 import Pi3Config, build_pi3
-        from sl4slam.models.pi3.model import IMAGE_MEAN, IMAGE_STD
-        from sl4slam.models.vggt.model import init_random_weights
         from sl4slam.types import Frame
 
-        config = Pi3Config(variant=variant)
-        if variant == "pi3x":  # as the frontend loads it: the intrinsics branch only
-            config.depth_condition, config.pose_inject_blocks = False, 0
-        model = init_random_weights(build_pi3(config, device="meta"), seed=SEED).eval()
-        with torch.no_grad():  # buffers are not parameters: restore the image normalisation
-            model.image_mean.copy_(torch.tensor(IMAGE_MEAN).view(1, 3, 1, 1))
-            model.image_std.copy_(torch.tensor(IMAGE_STD).view(1, 3, 1, 1))
-        frontend = Pi3Frontend(variant, device="cpu", model=model)
+        frontend = Pi3Frontend(variant, device="cpu", model=random_frontend_model(variant, SEED))
         frame_list = [Frame(index=i, timestamp=float(i), rgb=image) for i, image in enumerate(images_u8)]
         kwargs = {"intrinsics": frame_intrinsics(frames)} if variant == "pi3x" else {}
         weight_bytes = frontend.weight_bytes()

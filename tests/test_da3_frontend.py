@@ -3,30 +3,26 @@ tiny fixture model (``tests/fixtures/da3_tiny``: the authors' outputs of the sam
 
 from __future__ import annotations
 
-import contextlib
 import json
 
 import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file
+from torch_threads import one_thread
 
 from sl4slam.errors import MissingWeightsError, UserError
 from sl4slam.frontend.da3 import DA3Frontend
-from sl4slam.models.da3 import DA3Config, DepthAnything3, load_state_dict_into, read_checkpoint, save_checkpoint
+from sl4slam.models.da3 import (
+    DA3Config,
+    DepthAnything3,
+    load_state_dict_into,
+    read_checkpoint,
+    save_checkpoint,
+)
 from sl4slam.models.da3.cameras import invert_rigid, relative_to_first, submap_arrays
 from sl4slam.models.da3.rays import extrinsics_intrinsics_from_rays
 from sl4slam.types import Frame, Frontend, FrontendCapabilities, SubmapPrediction
-
-
-@contextlib.contextmanager
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 def rotation(axis: np.ndarray, angle: float) -> np.ndarray:

@@ -8,7 +8,6 @@ made with; elsewhere (other kernels round differently) within 1e-4 relative.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import re
 
@@ -16,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
+from torch_threads import one_thread
 
 from sl4slam.errors import MissingWeightsError, UserError
 from sl4slam.models.checkpoint import describe_checkpoint
@@ -46,14 +46,6 @@ RAY_SEED = 5
 
 
 # ------------------------------------------------------------------------------------------ helpers
-@contextlib.contextmanager
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 def exact_platform(meta: dict) -> bool:
@@ -323,7 +315,12 @@ def test_random_weights_run_end_to_end():
 
 
 def test_memory_plan_shrinks_the_head_chunk_to_fit():
-    from sl4slam.models.da3.memory import GIB, estimate_peak_bytes, largest_fitting_frames, plan_memory
+    from sl4slam.models.da3.memory import (
+        GIB,
+        estimate_peak_bytes,
+        largest_fitting_frames,
+        plan_memory,
+    )
 
     small = ARCHITECTURES["small"]
     peaks = {chunk: estimate_peak_bytes(small, 17, 378, 504, chunk) for chunk in range(1, 9)}

@@ -135,9 +135,9 @@ class IndexedSource(ABC):
     def __len__(self) -> int:
         return len(self._items)
 
+    @abstractmethod
     def _image_path(self, position: int) -> Path:
         """The image file of ``position`` (for its size, read from the header alone)."""
-        raise NotImplementedError
 
     def image_size(self) -> tuple[int, int] | None:
         """``(width, height)`` of the first frame, from its file's header (no pixels decoded)."""
