@@ -153,6 +153,13 @@ def test_cache_key_holds_what_changes_the_frontend_output_only() -> None:
     assert changed(lambda c: setattr(c.source, "stride", 2))
     assert changed(lambda c: setattr(c.sim, "seed", 1))
     assert changed(lambda c: setattr(c.retrieval, "kind", "orb"))
+    assert changed(lambda c: setattr(c.submap, "overlap", 1))
+    # loop frames matter only where loops are proposed
+    assert not changed(lambda c: setattr(c.submap, "loop_frames", 1))  # no retrieval in small_config
+    orb_one, orb_two = small_config(), small_config()
+    orb_one.retrieval.kind = orb_two.retrieval.kind = "orb"
+    orb_one.submap.loop_frames = 1
+    assert frontend_cache_key(orb_one, sequence) != frontend_cache_key(orb_two, sequence)
     # ORB retrieval is seeded (retrieval.seed, set by the runs): then the seed matters
     orb = small_config()
     orb.retrieval.kind = "orb"

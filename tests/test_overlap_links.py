@@ -15,6 +15,7 @@ from sl4slam.alignment.aligner import CalibrationAligner, SelectAligner, SL4Alig
 from sl4slam.backend import KeyframeBackend, SubmapFrames
 from sl4slam.backend.evidence import NoiseScale, link_scatter
 from sl4slam.config import AlignmentConfig, BackendConfig, SimulatorConfig, SLAMConfig
+from sl4slam.edges import is_camera_link
 from sl4slam.errors import UserError
 from sl4slam.frontend.simulated import SimulatedFrontend
 from sl4slam.geometry import apply_transform, se3_inverse, to_4x4
@@ -203,3 +204,130 @@ def test_bad_overlap_is_one_line() -> None:
                                             r"the submap size \(16\)") as info:
             config.validate()
         assert "\n" not in str(info.value)
+
+
+def loop_evidence(pairs):
+    """Evidence of a loop measured on ``pairs`` (the view and graph checks are off in these tests)."""
+    from sl4slam.loops import LoopEvidence
+
+    old, new = pairs[0]
+    blank = np.zeros(new.mask.shape)
+    return LoopEvidence(old=old, new=new, grey_new=blank, query_depth=blank, query_mask=new.mask, query_grey=blank,
+                        query_K=new.K, query_T_cam_submap=new.T_cam_submap, pairs=list(pairs))
+
+
+def test_a_loop_on_two_frames_takes_the_fit_that_one_frame_cannot_judge(frames: list) -> None:
+    """A loop measured by the "select" link under a strong distortion of each window: on the loop frame
+    alone nothing is held out, so the calibration link is kept and misses the true transform; with a
+    second frame of the old submap (``--loop-frames 2``) the fit predicts the held-out frame and
+    is chosen, and lands on the true transform."""
+    from sl4slam.config import LoopConfig
+    from sl4slam.loops import LoopVerifier
+
+    config = AlignmentConfig()
+    pairs, H_true = two_submaps(frames[6:], DISTORTED, 2)
+    loops = LoopConfig(verify_view=False, verify_graph=False, verify_attention="off")
+    verifier = LoopVerifier(loops, config, SelectAligner(config), KeyframeBackend(BackendConfig()),
+                            information=lambda _: np.eye(15))
+    two = verifier.verify(0, 1, loop_evidence(pairs), [1.0], seed=0)
+    one = verifier.verify(0, 1, loop_evidence(pairs[:1]), [1.0], seed=0)
+    assert two.accepted and one.accepted
+    assert two.alignment.extras["select"]["chosen"] == "fit" and not is_camera_link(two.alignment)
+    assert is_camera_link(one.alignment) and one.alignment.extras["select"]["chosen"] == "link"
+    assert link_error(two.alignment.H, H_true, pairs) < 1e-3
+    assert link_error(one.alignment.H, H_true, pairs) > 30 * link_error(two.alignment.H, H_true, pairs)
+
+
+def test_loop_companions_are_the_nearest_keyframes_of_the_loop_frames_submap() -> None:
+    """The frames a loop brings along: keyframes stored in the loop frame's submap, nearest in the
+    video first, never another submap's."""
+    from types import SimpleNamespace
+
+    stored = [SimpleNamespace(frame_index=f, submap_id=s) for f, s in
+              ((0, 0), (4, 0), (9, 0), (15, 1), (18, 1), (30, 1), (31, 2))]
+
+    def companions(frame: int, count: int) -> list[int]:
+        owner = SimpleNamespace(keyframes=stored, config=SimpleNamespace(submap=SimpleNamespace(loop_frames=count)))
+        return SLAMPipeline._loop_companions(owner, frame)
+
+    assert companions(4, 1) == []
+    assert companions(4, 2) == [0]  # 4 frames before against 5 after
+    assert companions(4, 3) == [0, 9]
+    assert companions(9, 5) == [4, 0]  # submap 0 has no more
+    assert companions(15, 2) == [18]  # not frame 9 of submap 0
+    assert companions(31, 3) == []  # alone in its submap
+
+
+@pytest.mark.parametrize("loop_frames", [1, 2])
+def test_loop_frames_are_reconstructed_with_the_new_submap(world: Path, loop_frames: int) -> None:
+    """End to end on the lap: the submap that closes the loop is given the loop frame and, with
+    ``--loop-frames 2``, the next keyframe of the loop frame's submap; the loop is accepted."""
+    config = SLAMConfig(frontend="simulated")
+    config.keyframes.tau_disparity = 12.0
+    config.retrieval.kind = "orb"
+    config.submap.loop_frames = loop_frames
+    pipeline = SLAMPipeline(config)
+    given: dict[int, list[int]] = {}
+    reconstruct = pipeline.frontend.reconstruct
+
+    def recording(frames, submap_id, **kwargs):
+        given[submap_id] = [f.index for f in frames]
+        return reconstruct(frames, submap_id, **kwargs)
+
+    pipeline.frontend.reconstruct = recording
+    result = pipeline.run(open_source(str(world)), progress=False)
+    loops = [e for e in result.edges if e.kind == "loop"]
+    assert loops and all(e.accepted for e in loops)
+    for loop in loops:
+        old_keyframes = [k.frame_index for k in result.keyframes if k.submap_id == loop.submap_from]
+        tail = given[loop.submap_to][-loop_frames:]
+        assert tail[0] == loop.frame_index
+        if loop_frames == 2:
+            position = old_keyframes.index(loop.frame_index)
+            assert tail[1] in old_keyframes and abs(old_keyframes.index(tail[1]) - position) == 1
+
+
+def test_bad_loop_frames_is_one_line() -> None:
+    config = SLAMConfig()
+    config.submap.loop_frames = 0
+    with pytest.raises(UserError, match=r"--loop-frames \(config key submap.loop_frames\) must be at least 1") as info:
+        config.validate()
+    assert "\n" not in str(info.value)
+
+
+def test_camera_links_are_weighted_by_the_pose_errors_they_carry() -> None:
+    """A frame that is the new submap's reference (``[I | 0]``) carries one pose error, the other
+    shared frames two: weights 1 and 1/2; a frame that is the reference in both submaps is exact in
+    pose and alone decides; the weighted tangent mean of two rotations lies at the weighted angle."""
+    from scipy.spatial.transform import Rotation
+
+    from sl4slam.alignment.shared import pose_error_weights, tangent_mean
+
+    def view(T: np.ndarray) -> FrameView:
+        return FrameView(np.zeros((2, 2, 3), np.float32), np.ones((2, 2), bool), np.eye(3), T)
+
+    moved = np.eye(4)
+    moved[:3, 3] = [0.1, 0.0, 0.0]
+    np.testing.assert_allclose(pose_error_weights([(view(moved), view(np.eye(4))), (view(moved), view(moved))]), [1.0, 0.5])
+    np.testing.assert_allclose(pose_error_weights([(view(moved), view(moved)), (view(np.eye(4)), view(np.eye(4)))]),
+                               [0.0, 1.0])
+    turned = np.eye(4)
+    turned[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 0.3]).as_matrix()
+    mean = tangent_mean([np.eye(4), turned], np.eye(4), weights=[2.0, 1.0])
+    assert Rotation.from_matrix(mean[:3, :3]).as_rotvec()[2] == pytest.approx(0.1, abs=1e-9)
+
+
+def test_the_weighted_link_is_nearer_the_truth_when_the_reference_frame_is_exact(frames: list) -> None:
+    """Two shared frames under VGGT-like per-frame camera errors, drawn independently per frame and
+    window (the new submap's first camera exact by construction, as VGGT's): over seeds, the link
+    that weighs the reference frame twice is nearer the true transform than the plain mean."""
+    from sl4slam.config import AlignmentConfig as Settings
+
+    cameras = dict(profile="exact", camera_rotation_deg=1.5, depth_noise=0.0, outlier_fraction=0.0)
+    errors = {True: [], False: []}
+    for seed in range(6):
+        pairs, H_true = two_submaps(frames[6:], SimulatorConfig(seed=seed, **cameras), 2)
+        for weighted in (True, False):
+            link = CalibrationAligner(Settings(weight_reference_frame=weighted)).align_frames(pairs, seed=0)
+            errors[weighted].append(link_error(link.H, H_true, pairs))
+    assert np.mean(errors[True]) < np.mean(errors[False])

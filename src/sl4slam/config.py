@@ -112,7 +112,7 @@ class SubmapConfig(Section):
 
     section: ClassVar[str] = "submap"
     flag_prefix: ClassVar[str] = "submap-"
-    flag_names: ClassVar[dict[str, str]] = {"tau_conf": "--tau-conf", "w_loop": "--w-loop"}
+    flag_names: ClassVar[dict[str, str]] = {"tau_conf": "--tau-conf", "w_loop": "--w-loop", "loop_frames": "--loop-frames"}
 
     size: int = 16
     """New keyframes per submap, w. Paper evaluates 8/16/32 (tables use 32); reference CLI: 16."""
@@ -123,7 +123,14 @@ class SubmapConfig(Section):
     let the "select" link judge the 15-DOF fit on a frame it was not fitted on and the loop gate
     measure the links' real noise (benchmarks/results/levers.md)."""
     w_loop: int = 1
-    """Loop frames appended to a submap (paper: 1)."""
+    """Loop candidates per submap, each appending its loop frame (paper: 1)."""
+    loop_frames: int = 2
+    """Frames of the old submap each loop candidate appends: its loop frame and the keyframes of that
+    submap nearest to it. The loop is then measured like a link over several shared frames
+    (``sl4slam.alignment.shared``), so the "select" link can judge the 15-DOF fit on a frame it was
+    not fitted on; with one frame it keeps the calibration link, which a per-submap projective
+    distortion bends (benchmarks/results/levers.md). Each costs one more frame per forward in the
+    submaps that propose a loop. VGGT-SLAM appends one."""
     tau_conf: float = 25.0
     """Percentile of the submap's confidence below which pixels are dropped (reference code: 25)."""
     use_point_head: bool = False
@@ -138,6 +145,7 @@ class SubmapConfig(Section):
                       f"at least 1 and at most the submap size ({self.size}): the shared frames are the newest keyframes "
                       "of the submap before")
         self._require("w_loop", self.w_loop >= 0, ">= 0")
+        self._require("loop_frames", self.loop_frames >= 1, "at least 1: the loop frame itself")
         # 100 would drop every pixel (an empty map); the percentile is over the whole submap
         self._require("tau_conf", 0 <= self.tau_conf < 100, "a percentile in [0, 100)")
 
@@ -150,6 +158,7 @@ class AlignmentConfig(Section):
     flag_prefix: ClassVar[str] = "ransac-"
     flag_names: ClassVar[dict[str, str]] = {
         "model": "--alignment", "min_points": "--alignment-min-points",
+        "weight_reference_frame": "--alignment-weight-reference-frame",
         "min_inlier_ratio": "--alignment-min-inlier-ratio", "max_condition": "--alignment-max-condition"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
         "model": ("auto", "sl4", "calibration", "hybrid", "select", "sim3-points", "sim3-cameras"),
@@ -159,7 +168,7 @@ class AlignmentConfig(Section):
         "planar_support_margin", "planar_fit_min_inlier_ratio", "hybrid_margin", "select_confidence",
         "near_planar_threshold", "refit", "refit_candidates",
         "hypothesis_batch", "early_stop_spread", "preemptive_points", "preemptive_keep",
-        "preemptive_min_keep", "refit_rounds", "refit_min_gain", "small_set",
+        "preemptive_min_keep", "refit_rounds", "refit_min_gain", "small_set", "weight_reference_frame",
         "camera_constrained_iterations", "camera_constrained_ridge", "min_points", "min_inlier_ratio",
         "max_condition"})
 
@@ -281,6 +290,11 @@ class AlignmentConfig(Section):
     """Largest condition number of a measured 4x4 transform: consecutive windows differ by a scale
     of 0.5-2 and a mild projective part (condition < 20 on the synthetic world), so beyond this the
     fit has degenerated."""
+    weight_reference_frame: bool = True
+    """Where several shared frames' camera links are averaged, weigh each by the inverse of the pose
+    errors it carries: a frame that is its submap's reference (the first camera, ``[I | 0]`` by
+    construction in VGGT) has none there, so the new submap's first shared frame counts twice
+    (``sl4slam.alignment.shared.pose_error_weights``). Off: the plain mean."""
 
     def validate(self) -> None:
         super().validate()

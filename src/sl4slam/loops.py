@@ -13,7 +13,9 @@ reason the run summary lists:
    from the true overlap, ``sl4slam.frontend.overlap``); below ``min_match_ratio`` the images are
    taken not to overlap. A frontend that gave no score (a replayed cache recorded without the check)
    skips this check, which the decision's figures show by the missing ``match_ratio``.
-1. **Alignment.** The loop frame's two reconstructions must align with the model the graph uses
+1. **Alignment.** The loop frame's two reconstructions (with the keyframes appended next to it,
+   ``SubmapConfig.loop_frames``, one link of them all as between consecutive submaps, so the
+   "select" link can choose the 15-DOF fit for a loop too) must align with the model the graph uses
    (a constrained model of that group for a degenerate frame, never a weaker stand-in), a point fit
    keeping ``LoopConfig.min_inlier_ratio`` of the points (or half the odometry's median, when the
    model fits consecutive submaps worse than that), and pass the same edge checks as odometry
@@ -157,6 +159,9 @@ class LoopEvidence:
     Attributes:
         old: the loop frame as stored in its old submap.
         new: the loop frame reconstructed in the new submap.
+        pairs: ``(old, new)`` views of every frame the loop is measured on: the loop frame first, then
+            keyframes of the same old submap appended with it (``SubmapConfig.loop_frames``); empty:
+            the loop frame alone.
         grey_new: ``(H, W)`` its grey image for the view check (:func:`grey_for_check`).
         query_depth, query_mask, query_grey: ``(H, W)`` the query keyframe in the new submap.
         query_K, query_T_cam_submap: its camera there.
@@ -172,6 +177,7 @@ class LoopEvidence:
     query_K: np.ndarray
     query_T_cam_submap: np.ndarray
     match_ratio: float | None = None
+    pairs: list[tuple[FrameView, FrameView]] = field(default_factory=list)
 
 
 class LoopVerifier:
@@ -216,7 +222,10 @@ class LoopVerifier:
                                            f"(match ratio {evidence.match_ratio:.2f} < {self.config.min_match_ratio})",
                                     checks=checks)
         try:
-            alignment = self.aligner.align(evidence.old, evidence.new, seed=seed)
+            if len(evidence.pairs) > 1:  # several frames: one link of them all, as between consecutive submaps
+                alignment = self.aligner.align_frames(evidence.pairs, seed=seed)
+            else:
+                alignment = self.aligner.align(evidence.old, evidence.new, seed=seed)
         except ValueError as exc:
             return LoopDecision(False, f"the loop frame's alignment failed: {exc}", checks=checks)
         checks["inlier_ratio"] = alignment.inlier_ratio

@@ -31,6 +31,7 @@ Nothing that goes wrong inside a submap ends a run:
 
 from __future__ import annotations
 
+import bisect
 import logging
 import time
 from dataclasses import dataclass, field
@@ -72,10 +73,12 @@ class SubmapInput:
         frames: ``shared frames + new keyframes + loop frames`` (no shared frame for a first submap).
         first_new: slot of the first new keyframe (the number of shared frames).
         num_new: number of new keyframes.
-        loops: the retrieved candidates whose loop frame follows the new keyframes, in order.
+        loops: the retrieved candidates whose loop frames follow the new keyframes, in order.
         unreadable: candidates whose loop frame could not be read again, with the reason (rejected
             when the submap is accepted, so that the edges keep their order however submaps overlap).
         seconds: wall time of its stages.
+        loop_widths: how many frames each candidate appended (its loop frame first, then keyframes
+            of the same old submap: ``SubmapConfig.loop_frames``); empty: one each.
     """
 
     submap_id: int
@@ -85,6 +88,7 @@ class SubmapInput:
     loops: list[LoopCandidate]
     unreadable: list[tuple[LoopCandidate, str]] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
+    loop_widths: list[int] = field(default_factory=list)
 
     @property
     def shared(self) -> Frame | None:
@@ -103,8 +107,15 @@ class SubmapInput:
     def last_slot(self) -> int:
         return self.first_new + self.num_new - 1
 
+    def loop_slots(self, k: int) -> range:
+        """Slots of candidate ``k``'s frames: its loop frame, then its companions."""
+        widths = self.loop_widths or [1] * len(self.loops)
+        start = self.first_new + self.num_new + sum(widths[:k])
+        return range(start, start + widths[k])
+
     def loop_slot(self, k: int) -> int:
-        return self.first_new + self.num_new + k
+        """Slot of candidate ``k``'s loop frame."""
+        return self.loop_slots(k).start
 
     def slot_of(self, frame_index: int) -> int:
         return next(s for s in self.new_slots if self.frames[s].index == frame_index)
@@ -316,14 +327,25 @@ class SLAMPipeline:
             proposed = self.retrieval.query(list(new_frames), submap_id, self.config.submap.w_loop)
             candidates = [c for c in proposed[: self.config.submap.w_loop] if c.match_frame in self._by_frame]
         shared = list(self._shared)
-        frames, loops, unreadable = shared + list(new_frames), [], []
+        frames, loops, unreadable, widths = shared + list(new_frames), [], [], []
         for candidate in candidates:
             try:
-                frames.append(self._source.get(candidate.match_frame))
-                loops.append(candidate)
+                loop_frames = [self._source.get(candidate.match_frame)]
             except UserError as exc:
                 unreadable.append((candidate, f"the loop frame cannot be read again: {exc}"))
-        work = SubmapInput(submap_id, frames, len(shared), len(new_frames), loops, unreadable)
+                continue
+            present = {f.index for f in frames} | {candidate.match_frame}
+            for companion in self._loop_companions(candidate.match_frame):
+                if companion in present:  # already in this window: never give the model a frame twice
+                    continue
+                try:
+                    loop_frames.append(self._source.get(companion))
+                except UserError:  # the loop frame alone still measures the loop
+                    continue
+            frames += loop_frames
+            loops.append(candidate)
+            widths.append(len(loop_frames))
+        work = SubmapInput(submap_id, frames, len(shared), len(new_frames), loops, unreadable, loop_widths=widths)
         self._time_retrieval(work, start, described)
         return work
 
@@ -332,7 +354,7 @@ class SLAMPipeline:
         new keyframes and loop frames, so that the retrieval is not asked again."""
         shared = list(self._shared)
         return SubmapInput(work.submap_id, shared + work.frames[work.first_new:], len(shared), work.num_new,
-                           work.loops, work.unreadable, dict(work.seconds))
+                           work.loops, work.unreadable, dict(work.seconds), list(work.loop_widths))
 
     def run_frontend(self, work: SubmapInput) -> FrontendOutcome:
         """The frontend's prediction of ``work`` (touches no pipeline state: it may run in a worker)."""
@@ -413,7 +435,7 @@ class SLAMPipeline:
         mask = confidence_mask(prediction.confidence, prediction.depth, self.config.submap.tau_conf)
         T_cam_submap = to_4x4(prediction.T_cam_submap)
         needed = sorted({0, *range(work.first_new), *work.opening_slots(self.config.submap.overlap),
-                         *range(work.loop_slot(0), len(work.frames))})
+                         *range(work.last_slot + 1, len(work.frames))})
         points = submap_points(prediction, self.config.submap.use_point_head, needed)
         views = {slot: FrameView(points[k], mask[slot], prediction.K[slot], T_cam_submap[slot])
                  for k, slot in enumerate(needed)}
@@ -576,11 +598,38 @@ class SLAMPipeline:
         for candidate in work.loops:
             self._reject_loop(candidate, work.submap_id, f"the submap was dropped ({why})")
 
+    def _loop_companions(self, frame_index: int) -> list[int]:
+        """Up to ``SubmapConfig.loop_frames - 1`` keyframes stored with ``frame_index`` in its submap,
+        nearest to it in the video first: with the loop frame they give the loop several frames to
+        measure it on, all in the same two submaps."""
+        wanted = self.config.submap.loop_frames - 1
+        if wanted <= 0:
+            return []
+        position = bisect.bisect_left(self.keyframes, frame_index, key=lambda k: k.frame_index)
+        submap = self.keyframes[position].submap_id
+        lo, hi = position - 1, position + 1
+
+        def same(p: int) -> bool:
+            return 0 <= p < len(self.keyframes) and self.keyframes[p].submap_id == submap
+
+        companions: list[int] = []
+        while len(companions) < wanted and (same(lo) or same(hi)):
+            gap_lo = frame_index - self.keyframes[lo].frame_index if same(lo) else np.inf
+            gap_hi = self.keyframes[hi].frame_index - frame_index if same(hi) else np.inf
+            if gap_hi <= gap_lo:
+                companions.append(self.keyframes[hi].frame_index)
+                hi += 1
+            else:
+                companions.append(self.keyframes[lo].frame_index)
+                lo -= 1
+        return companions
+
     def _loop_evidence(self, work: SubmapInput, dense: DenseSubmap, candidate: LoopCandidate, k: int) -> LoopEvidence:
         slot, query = work.loop_slot(k), work.slot_of(candidate.query_frame)
         prediction = dense.prediction
+        pairs = [(self._by_frame[work.frames[s].index].view(), dense.views[s]) for s in work.loop_slots(k)]
         return LoopEvidence(
-            old=self._by_frame[candidate.match_frame].view(), new=dense.views[slot],
+            old=pairs[0][0], new=dense.views[slot], pairs=pairs,
             grey_new=grey_for_check(prediction.colors[slot]), query_depth=prediction.depth[query],
             query_mask=dense.mask[query], query_grey=grey_for_check(prediction.colors[query]),
             query_K=prediction.K[query], query_T_cam_submap=dense.T_cam_submap[query],

@@ -109,7 +109,8 @@ def _frame_folds(fit_aligner: "SL4Aligner", pairs: Sequence[tuple[FrameView, Fra
                                      view_a, view_b, seed + 100 + held)
         at = [links.frames.index(k) for k in train]
         H_link = mean_camera_link([links.alignments[i] for i in at], [pairs[k] for k in train],
-                                  [links.points[i] for i in at], fit_aligner.config.inlier_threshold).H
+                                  [links.points[i] for i in at], fit_aligner.config.inlier_threshold,
+                                  fit_aligner.config.weight_reference_frame).H
         H_fit = H_link if fitted.extras.get("degenerate") else fitted.H
         folds.append((transfer_distances(H_fit, X_a, X_b), transfer_distances(H_link, X_a, X_b)))
     return folds

@@ -34,17 +34,37 @@ from .ransac import transfer_errors
 if TYPE_CHECKING:
     from .aligner import PointAligner
 
-def tangent_mean(H: Sequence[np.ndarray], reference: np.ndarray) -> np.ndarray:
-    """The mean of 4x4 transforms ``H`` in the tangent at ``reference``:
-    ``reference exp(mean_k log(reference^-1 H_k))`` (Sim(3) stays Sim(3), SL(4) stays SL(4)).
+def tangent_mean(H: Sequence[np.ndarray], reference: np.ndarray, weights: Sequence[float] | None = None) -> np.ndarray:
+    """The (weighted) mean of 4x4 transforms ``H`` in the tangent at ``reference``:
+    ``reference exp(sum_k w_k log(reference^-1 H_k) / sum_k w_k)`` (Sim(3) stays Sim(3), SL(4) stays SL(4)).
 
     Args:
         H: transforms of one group, close to each other (measurements of one link).
         reference: ``(4, 4)`` one of them (the consensus winner).
+        weights: ``(len(H),)`` positive weights (``None``: equal).
     """
     inverse = np.linalg.inv(reference)
     steps = [np.real(logm(inverse @ np.asarray(h, dtype=np.float64))) for h in H]
-    return reference @ expm(np.mean(steps, axis=0))
+    return reference @ expm(np.average(steps, axis=0, weights=weights))
+
+
+def is_reference_view(view: FrameView) -> bool:
+    """Whether the frame is its submap's reference: its camera is the submap frame (``[I | 0]``,
+    VGGT's first camera by construction), so its pose there carries no error of its own."""
+    return bool(np.allclose(np.asarray(view.T_cam_submap, dtype=np.float64)[:3], np.eye(4)[:3], atol=1e-9))
+
+
+def pose_error_weights(pairs: Sequence[tuple[FrameView, FrameView]]) -> np.ndarray:
+    """``(N,)`` inverse-variance weights of the shared frames' camera links: a frame's link carries
+    the pose error the model made for it in each submap, none where it is that submap's reference
+    (:func:`is_reference_view`). With errors of one size per frame and submap, independent between
+    frames (``sl4slam.frontend.simulated`` argues this for VGGT), a link's variance counts the
+    submaps in which its frame is not the reference; a frame that is the reference in both is exact
+    in pose, and the others get no weight beside it."""
+    counts = np.array([(not is_reference_view(a)) + (not is_reference_view(b)) for a, b in pairs], dtype=np.float64)
+    if (counts == 0).any():
+        return (counts == 0).astype(np.float64)
+    return 1.0 / counts
 
 
 @dataclass
@@ -106,7 +126,8 @@ def link_from_shared_frames(aligner: "PointAligner", pairs: Sequence[tuple[Frame
         link = aligner.fit(np.concatenate([p[0] for p in points]), np.concatenate([p[1] for p in points]),
                            first[0], first[1], seed)
     else:
-        link = mean_camera_link(own, [pairs[k] for k in measured.frames], points, aligner.config.inlier_threshold)
+        link = mean_camera_link(own, [pairs[k] for k in measured.frames], points, aligner.config.inlier_threshold,
+                                aligner.config.weight_reference_frame)
     link.extras["shared_frames"] = len(own)
     link.extras["frames_used"] = list(measured.frames)
     link.extras["per_frame"] = list(own)  # each frame's own link: their scatter calibrates the loop gate
@@ -137,17 +158,21 @@ def rescaled_link(link: Alignment, view_a: FrameView, scale: float) -> np.ndarra
 
 
 def mean_camera_link(links: Sequence[Alignment], pairs: Sequence[tuple[FrameView, FrameView]],
-                     points: Sequence[tuple[np.ndarray, np.ndarray]], threshold: float) -> Alignment:
+                     points: Sequence[tuple[np.ndarray, np.ndarray]], threshold: float,
+                     weighted: bool = True) -> Alignment:
     """The camera links of several frames as one: each with the pooled scale (:func:`pooled_scale`),
-    then their tangent mean; scored (not fitted) on every frame's points.
+    then their tangent mean, weighted by how many pose errors each carries (:func:`pose_error_weights`:
+    the new submap's reference frame counts twice); scored (not fitted) on every frame's points.
 
     Args:
         links: each frame's own camera link (``extras["scale"]`` its scale).
         pairs: the frames' ``(view in a, view in b)``; points: their ``(X_a, X_b)`` shared points.
         threshold: inlier distance for the reported inlier ratio.
+        weighted: weigh the links by :func:`pose_error_weights` (else equally).
     """
     scale = pooled_scale([a for a, _ in pairs], [b for _, b in pairs], points)
-    H = tangent_mean([rescaled_link(link, view_a, scale) for link, (view_a, _) in zip(links, pairs)], links[0].H)
+    H = tangent_mean([rescaled_link(link, view_a, scale) for link, (view_a, _) in zip(links, pairs)], links[0].H,
+                     pose_error_weights(pairs) if weighted else None)
     X_a = np.concatenate([p[0] for p in points])
     X_b = np.concatenate([p[1] for p in points])
     r2, in_front = transfer_errors(H[None], X_a, X_b)

@@ -210,7 +210,7 @@ def frontend_cache_key(config: SLAMConfig, sequence: Sequence) -> dict:
     """The settings that decide what the frontend returns for a sequence (see the module docstring).
 
     Which frames a submap holds depends on the frame selection (``[source]``), the keyframe
-    selector, the submap size and loop slots, and the retrieval (with its seed, for ORB); what
+    selector, the submap size, shared frames and loop frames, and the retrieval (with its seed, for ORB); what
     the frontend returns for them on its own settings (all of ``sim``, resolved from its profile,
     including its seed; ``[model]`` for a model, which excludes the device, so a cache recorded on
     a GPU replays on a CPU). Injected false loops (``[false_loops]``) also decide the loop frames.
@@ -238,7 +238,9 @@ def frontend_cache_key(config: SLAMConfig, sequence: Sequence) -> dict:
         "sequence": sequence.name,
         "frames": dataclasses.asdict(settled.source),
         "keyframes": dataclasses.asdict(settled.keyframes),
-        "submap": {"size": settled.submap.size, "w_loop": settled.submap.w_loop},
+        "submap": {"size": settled.submap.size, "overlap": settled.submap.overlap, "w_loop": settled.submap.w_loop,
+                   # loop frames change what the model is given only where loops are proposed
+                   **({"loop_frames": settled.submap.loop_frames} if retrieval["kind"] != "none" else {})},
         "retrieval": retrieval,
         "frontend": resolved.frontend.name,
         "frontend_settings": frontend,

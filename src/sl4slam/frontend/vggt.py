@@ -233,7 +233,7 @@ def registry_entry() -> FrontendEntry:
         submap = resolved.config.submap
         return VGGTFrontend(resolved.config.model, with_points=submap.use_point_head,
                             match_scores=resolved.attention_check, device=resolved.device,
-                            submap_frames=submap.size + submap.overlap + submap.w_loop)
+                            submap_frames=submap.size + submap.overlap + submap.w_loop * submap.loop_frames)
 
     return FrontendEntry(
         name="vggt", build=build, capabilities=VGGTFrontend.capabilities,
