@@ -11,7 +11,10 @@ simulated submaps (same sequence, profile and seed), so the ratios compare desig
 
 Results accumulate in ``benchmarks/out/levers/runs.jsonl`` (a run already there is not run again);
 ``--report`` writes ``benchmarks/results/levers.md`` from whatever is there. BLAS runs
-single-threaded: the runs are spread over processes instead.
+single-threaded: the runs are spread over processes instead. ``--cost`` times two variants' whole
+runs side by side instead (each seed's pair at once, nothing else running):
+
+    python benchmarks/bench_levers.py --cost --worlds desk --profiles vggt --variants baseline,defaults --seeds 3
 """
 
 from __future__ import annotations
@@ -192,7 +195,9 @@ def report(out: Path) -> None:
              f"Machine: {platform.machine()}, {os.cpu_count()} cores; runs dated {min(r['date'] for r in runs)} to "
              f"{max(r['date'] for r in runs)}. Command: `python benchmarks/bench_levers.py ...` (grid in the tables). "
              "ATE RMSE in metres after Sim(3) alignment (`evo_ape -as`), median and range over the seeds; "
-             "ratio: median of the per-seed ratios to the baseline on the same simulated frames.", ""]
+             "ratio: median of the per-seed ratios to the baseline on the same simulated frames. \"run s\": wall "
+             "time under whatever load the grid ran (two workers, at times beside other benchmarks), not a cost "
+             "comparison: the side-by-side cost is its own table below the targets.", ""]
     for world in WORLDS:
         for profile in PROFILES:
             rows = [r for r in runs if r["world"] == world and r["profile"] == profile]
@@ -218,6 +223,7 @@ def report(out: Path) -> None:
                              f"{_cost(chosen)} | {np.median([r['seconds'] for r in chosen]):.0f} | {_false(chosen)} |")
             lines.append("")
     lines += targets(runs)
+    lines += cost_lines()
     lines += ["Variants: " + "; ".join(f"**{name}**: {text}" for name, (_, text) in VARIANTS.items()) + ".", "",
               "What each gain rests on in the simulator (`sl4slam.frontend.simulated`, `SimConfig`):", "",
               "- **select** (the default link): the simulator draws each frame's depth warp and camera error on "
@@ -290,6 +296,44 @@ def targets(runs: list[dict]) -> list[str]:
     return lines + [""]
 
 
+def run_cost(world: str, profile: str, variants: list[str], seeds: list[int]) -> None:
+    """Whole runs of two variants side by side: each seed's pair at once on two workers and nothing
+    else, so both see the same load (the grid's "run s" column is whatever load the grid ran under)."""
+    rows = []
+    with ProcessPoolExecutor(max_workers=2) as pool:
+        for seed in seeds:
+            pair = [pool.submit(one_run, world, profile, variant, seed) for variant in variants]
+            for future in pair:
+                row = future.result()
+                rows.append({k: row[k] for k in ("variant", "seed", "ate", "seconds", "frontend_frames", "keyframes")})
+                print(f"{world} {profile} {row['variant']} seed {seed}: {row['seconds']:.1f} s, ATE {row['ate']:.4f} m",
+                      flush=True)
+    WORK.mkdir(parents=True, exist_ok=True)
+    (WORK / "cost.json").write_text(json.dumps({"world": world, "profile": profile, "date": str(datetime.date.today()),
+                                                "rows": rows}, indent=1))
+
+
+def cost_lines() -> list[str]:
+    """The side-by-side cost section of the report (empty before ``--cost`` was run)."""
+    path = WORK / "cost.json"
+    if not path.is_file():
+        return []
+    cost = json.loads(path.read_text())
+    variants = list(dict.fromkeys(r["variant"] for r in cost["rows"]))
+    lines = [f"**Cost side by side** ({WORLDS[cost['world']]}, {cost['profile']} profile, {cost['date']}; each seed's "
+             f"runs at once on the two cores, nothing else running; command: `python benchmarks/bench_levers.py --cost "
+             f"--worlds {cost['world']} --profiles {cost['profile']} --variants {','.join(variants)} --seeds "
+             f"{len({r['seed'] for r in cost['rows']})}`)", "",
+             "| variant | runs | whole run s (median, range) | model frames / keyframe | ATE median |", "|---|---|---|---|---|"]
+    for variant in variants:
+        rows = [r for r in cost["rows"] if r["variant"] == variant]
+        seconds = [r["seconds"] for r in rows]
+        lines.append(f"| {variant} | {len(rows)} | {np.median(seconds):.1f} ({min(seconds):.1f}-{max(seconds):.1f}) | "
+                     f"{np.median([r['frontend_frames'] / r['keyframes'] for r in rows]):.2f} | "
+                     f"{np.median([r['ate'] for r in rows]):.4f} |")
+    return lines + [""]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--worlds", default="synthetic,desk")
@@ -298,10 +342,14 @@ def main() -> None:
     parser.add_argument("--seeds", default="5", help="a count (seeds 0..n-1) or a list (0,3,4)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--report", action="store_true", help="only write the report from the runs there are")
+    parser.add_argument("--cost", action="store_true",
+                        help="time two variants side by side (first world and profile) instead of the grid")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "levers.md")
     args = parser.parse_args()
-    if not args.report:
-        seeds = list(range(int(args.seeds))) if "," not in args.seeds else [int(s) for s in args.seeds.split(",")]
+    seeds = list(range(int(args.seeds))) if "," not in args.seeds else [int(s) for s in args.seeds.split(",")]
+    if args.cost:
+        run_cost(args.worlds.split(",")[0], args.profiles.split(",")[0], args.variants.split(",")[:2], seeds)
+    elif not args.report:
         run_grid(args.worlds.split(","), args.profiles.split(","), args.variants.split(","), seeds, args.workers)
     report(args.out)
 
