@@ -210,10 +210,10 @@ def loop_evidence(pairs):
     """Evidence of a loop measured on ``pairs`` (the view and graph checks are off in these tests)."""
     from sl4slam.loops import LoopEvidence
 
-    old, new = pairs[0]
+    new = pairs[0][1]
     blank = np.zeros(new.mask.shape)
-    return LoopEvidence(old=old, new=new, grey_new=blank, query_depth=blank, query_mask=new.mask, query_grey=blank,
-                        query_K=new.K, query_T_cam_submap=new.T_cam_submap, pairs=list(pairs))
+    return LoopEvidence(pairs=list(pairs), grey_new=blank, query_depth=blank, query_mask=new.mask, query_grey=blank,
+                        query_K=new.K, query_T_cam_submap=new.T_cam_submap)
 
 
 def test_a_loop_on_two_frames_takes_the_fit_that_one_frame_cannot_judge(frames: list) -> None:

@@ -157,19 +157,16 @@ class LoopEvidence:
     """What the new submap says about one loop candidate.
 
     Attributes:
-        old: the loop frame as stored in its old submap.
-        new: the loop frame reconstructed in the new submap.
-        pairs: ``(old, new)`` views of every frame the loop is measured on: the loop frame first, then
-            keyframes of the same old submap appended with it (``SubmapConfig.loop_frames``); empty:
-            the loop frame alone.
-        grey_new: ``(H, W)`` its grey image for the view check (:func:`grey_for_check`).
+        pairs: ``(old, new)`` views of every frame the loop is measured on, each as stored in its old
+            submap and as reconstructed in the new one: the loop frame first, then the keyframes of
+            the same old submap appended with it (``SubmapConfig.loop_frames``).
+        grey_new: ``(H, W)`` the loop frame's grey image for the view check (:func:`grey_for_check`).
         query_depth, query_mask, query_grey: ``(H, W)`` the query keyframe in the new submap.
         query_K, query_T_cam_submap: its camera there.
         match_ratio: the frontend's image-match ratio of (query keyframe, loop frame), or ``None``.
     """
 
-    old: FrameView
-    new: FrameView
+    pairs: list[tuple[FrameView, FrameView]]
     grey_new: np.ndarray
     query_depth: np.ndarray
     query_mask: np.ndarray
@@ -177,7 +174,16 @@ class LoopEvidence:
     query_K: np.ndarray
     query_T_cam_submap: np.ndarray
     match_ratio: float | None = None
-    pairs: list[tuple[FrameView, FrameView]] = field(default_factory=list)
+
+    @property
+    def old(self) -> FrameView:
+        """The loop frame as stored in its old submap."""
+        return self.pairs[0][0]
+
+    @property
+    def new(self) -> FrameView:
+        """The loop frame reconstructed in the new submap."""
+        return self.pairs[0][1]
 
 
 class LoopVerifier:
@@ -222,10 +228,7 @@ class LoopVerifier:
                                            f"(match ratio {evidence.match_ratio:.2f} < {self.config.min_match_ratio})",
                                     checks=checks)
         try:
-            if len(evidence.pairs) > 1:  # several frames: one link of them all, as between consecutive submaps
-                alignment = self.aligner.align_frames(evidence.pairs, seed=seed)
-            else:
-                alignment = self.aligner.align(evidence.old, evidence.new, seed=seed)
+            alignment = self.aligner.align_frames(evidence.pairs, seed=seed)  # one link of them all, as odometry
         except ValueError as exc:
             return LoopDecision(False, f"the loop frame's alignment failed: {exc}", checks=checks)
         checks["inlier_ratio"] = alignment.inlier_ratio

@@ -78,7 +78,7 @@ class SubmapInput:
             when the submap is accepted, so that the edges keep their order however submaps overlap).
         seconds: wall time of its stages.
         loop_widths: how many frames each candidate appended (its loop frame first, then keyframes
-            of the same old submap: ``SubmapConfig.loop_frames``); empty: one each.
+            of the same old submap: ``SubmapConfig.loop_frames``).
     """
 
     submap_id: int
@@ -109,9 +109,8 @@ class SubmapInput:
 
     def loop_slots(self, k: int) -> range:
         """Slots of candidate ``k``'s frames: its loop frame, then its companions."""
-        widths = self.loop_widths or [1] * len(self.loops)
-        start = self.first_new + self.num_new + sum(widths[:k])
-        return range(start, start + widths[k])
+        start = self.first_new + self.num_new + sum(self.loop_widths[:k])
+        return range(start, start + self.loop_widths[k])
 
     def loop_slot(self, k: int) -> int:
         """Slot of candidate ``k``'s loop frame."""
@@ -520,8 +519,8 @@ class SLAMPipeline:
             if not decision.accepted:
                 self._reject_loop(candidate, work.submap_id, decision.reason, decision.alignment, decision.checks)
                 continue
-            alignment = self.metric_frame.complete_link(decision.alignment, old.submap_id, old.view(),
-                                                        dense.views[work.loop_slot(k)], dense.prediction,
+            alignment = self.metric_frame.complete_link(decision.alignment, old.submap_id, evidence.old,
+                                                        evidence.new, dense.prediction,
                                                         work.loop_slot(k), self.keyframes)
             report = EdgeReport.measured("loop", old.submap_id, work.submap_id, candidate.match_frame, alignment,
                                          query_frame=candidate.query_frame, checks=decision.checks)
@@ -629,7 +628,7 @@ class SLAMPipeline:
         prediction = dense.prediction
         pairs = [(self._by_frame[work.frames[s].index].view(), dense.views[s]) for s in work.loop_slots(k)]
         return LoopEvidence(
-            old=pairs[0][0], new=dense.views[slot], pairs=pairs,
+            pairs=pairs,
             grey_new=grey_for_check(prediction.colors[slot]), query_depth=prediction.depth[query],
             query_mask=dense.mask[query], query_grey=grey_for_check(prediction.colors[query]),
             query_K=prediction.K[query], query_T_cam_submap=dense.T_cam_submap[query],
