@@ -331,3 +331,60 @@ def test_the_weighted_link_is_nearer_the_truth_when_the_reference_frame_is_exact
             link = CalibrationAligner(Settings(weight_reference_frame=weighted)).align_frames(pairs, seed=0)
             errors[weighted].append(link_error(link.H, H_true, pairs))
     assert np.mean(errors[True]) < np.mean(errors[False])
+
+
+def test_relative_rotation_disagreement_is_the_angle_between_the_windows_relative_rotations() -> None:
+    """Three shared frames seen by a second window in another frame and unit, the middle camera
+    turned by 0.02 rad there: both consecutive pairs disagree by exactly that angle."""
+    from scipy.spatial.transform import Rotation
+
+    from sl4slam.backend.keyframe import relative_rotation_disagreement
+
+    def rigid(rotvec, translation) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = Rotation.from_rotvec(rotvec).as_matrix(), translation
+        return T
+
+    rng = np.random.default_rng(11)
+    T_older = np.stack([rigid(rng.normal(scale=0.3, size=3), rng.normal(size=3)) for _ in range(3)])
+    T_newer = T_older @ rigid([0.1, -0.2, 0.3], [1.0, 2.0, 0.5])
+    T_newer[:, :3, 3] *= 1.7  # the newer window's own unit
+    np.testing.assert_allclose(relative_rotation_disagreement(T_older, T_newer), [0.0, 0.0], atol=1e-9)
+    T_newer[1, :3, :3] = Rotation.from_rotvec([0.0, 0.02, 0.0]).as_matrix() @ T_newer[1, :3, :3]
+    np.testing.assert_allclose(relative_rotation_disagreement(T_older, T_newer), [0.02, 0.02], atol=1e-9)
+    assert relative_rotation_disagreement(T_older[:1], T_newer[:1]).shape == (0,)
+
+
+def chain_sigmas(world: Path, monkeypatch, **sim) -> list[tuple[bool, float, float]]:
+    """Run the defaults on the lap; per linked submap: (fitted link, its chain sigma, the factor
+    times the median disagreement measured so far)."""
+    seen: list[tuple[bool, float, float]] = []
+    add_submap = KeyframeBackend.add_submap
+
+    def spy(self, submap_id, H_prev_cur, information=None, frames=None):
+        add_submap(self, submap_id, H_prev_cur, information, frames)
+        if H_prev_cur is not None:
+            expected = self.config.frame_scatter_factor * float(np.median(self._frame_scatters))
+            seen.append((frames.fitted_link, self.chain_sigma(frames), expected))
+
+    monkeypatch.setattr(KeyframeBackend, "add_submap", spy)
+    config = SLAMConfig(frontend="simulated")
+    config.retrieval.kind = "none"
+    for key, value in sim.items():
+        setattr(config.sim, key, value)
+    SLAMPipeline(config).run(open_source(str(world)), progress=False)
+    return seen
+
+
+def test_a_window_distortion_stiffens_the_submap_by_the_measured_disagreement(world: Path, monkeypatch) -> None:
+    """Under a strong per-submap distortion, submaps joined by a 15-DOF fit get stiffer links inside:
+    the factor times the windows' measured disagreement, below the reference's frame_sigma;
+    camera-linked submaps keep frame_sigma. Under per-frame camera errors (vggt, no distortion) the
+    windows disagree too much for any submap to be stiffened."""
+    frame_sigma, min_sigma = BackendConfig().frame_sigma, BackendConfig().min_sigma
+    strong = chain_sigmas(world, monkeypatch, profile="exact", perspective=0.2, shear=0.05, scale=0.1, seed=2)
+    for is_fit, sigma, expected in strong:
+        assert sigma == pytest.approx(np.clip(expected, min_sigma, frame_sigma) if is_fit else frame_sigma), strong
+    assert any(is_fit and sigma < frame_sigma for is_fit, sigma, _ in strong), strong
+    vggt = chain_sigmas(world, monkeypatch, profile="vggt", seed=2)
+    assert vggt and all(sigma == frame_sigma for _, sigma, _ in vggt), vggt

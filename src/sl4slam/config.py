@@ -343,7 +343,7 @@ class BackendConfig(Section):
     advanced: ClassVar[frozenset[str]] = frozenset({
         "prior_sigma", "loop_kernel", "loop_kernel_width", "effective_points", "min_sigma", "max_sigma",
         "segment_sigma", "relinearize_threshold", "relinearize_skip", "wildfire_threshold", "loop_step_threshold",
-        "max_loop_iterations", "frame_sigma", "revisit_priors"})
+        "max_loop_iterations", "frame_sigma", "frame_scatter_factor", "revisit_priors"})
 
     kind: str = "sl4"
     """"sl4" (15-DOF projective, the paper) or "sim3" (7-DOF similarity, for comparison)."""
@@ -363,6 +363,19 @@ class BackendConfig(Section):
     """Keyframe graph: isotropic sigma (SL(4) tangent units) of the link between consecutive
     keyframes of a submap, their relative pose from the frontend (reference code: 0.05; the
     frontend reports no per-camera uncertainty to weigh it by)."""
+    frame_scatter_factor: float = 2.0
+    """Keyframe graph: in a submap whose link to the previous one is a 15-DOF fit (``select``
+    found a distortion of the whole window, ``sl4slam.alignment.select``), the links between its
+    keyframes get this many times the run's median disagreement between consecutive windows about
+    their shared frames' relative rotations (radians; at least ``min_sigma``, at most
+    ``frame_sigma``); 0 keeps ``frame_sigma`` everywhere. Such a window is consistent inside, and a
+    loop must move it whole, as the submap graph's one node does, not bend it. Under a strong
+    per-submap distortion, where the windows agreed to 0.3-0.8 degrees, TUM fr1/desk went from
+    0.0010 to 0.0005 m (submap graph 0.0006 m) and the synthetic lap from 0.0021 to 0.0016 m; under
+    per-frame camera errors (vggt, hard) the windows disagree by 1.6-2.3 degrees, twice that is above
+    ``frame_sigma`` and nothing changes (benchmarks/results/levers.md). 2 because the disagreement
+    of two windows is sqrt(2) times one window's error: about 3 standard errors of margin. Only
+    submaps with a 15-DOF link: the same stiffness for every submap left desk at 0.0010 m."""
     weighting: str = "evidence"
     """Noise of each edge: "evidence" (information from the alignment's own inliers, residuals and
     point spread; see ``sl4slam.backend.evidence``) or "fixed" (one isotropic ``sigma`` for every
@@ -433,6 +446,7 @@ class BackendConfig(Section):
         self._require("segment_sigma", self.segment_sigma <= 1000 * self.min_sigma,
                       f"at most 1000 times --backend-min-sigma ({1000 * self.min_sigma})")
         self._require("wildfire_threshold", self.wildfire_threshold >= 0, ">= 0")
+        self._require("frame_scatter_factor", self.frame_scatter_factor >= 0, ">= 0 (0 keeps --backend-frame-sigma)")
         self._require("max_loop_iterations", self.max_loop_iterations >= 0, ">= 0")
         self._require("relinearize_skip", self.relinearize_skip >= 1, "at least 1")
         self._require("frame_sigma", self.frame_sigma <= 1000 * self.min_sigma,

@@ -31,6 +31,8 @@ Nothing that goes wrong inside a submap ends a run:
 
 from __future__ import annotations
 
+import dataclasses
+
 import bisect
 import logging
 import time
@@ -43,7 +45,7 @@ from .backend import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
 from .backend.evidence import NoiseScale, edge_information, link_scatter
 from .compose import _BUILD, build_stages
 from .config import SLAMConfig, SourceConfig
-from .edges import EdgeReport, camera_problem, edge_problem
+from .edges import EdgeReport, camera_problem, edge_problem, is_camera_link
 from .errors import UserError
 from .geometry import normalize_sl4, to_4x4
 from .keyframes import KeyframeSelector
@@ -490,6 +492,8 @@ class SLAMPipeline:
             if odometry.fallback:
                 log.info("submap %d->%d: %s", previous, submap_id, odometry.fallback)
             relative = self._graph_measurement(odometry.H)
+            if not is_camera_link(odometry) and not odometry.fallback:  # a window distortion: stiffer inside
+                frames = dataclasses.replace(frames, fitted_link=True)
             self.backend.add_submap(submap_id, relative, self.edge_information(odometry), frames=frames)
             try:
                 self.backend.update()

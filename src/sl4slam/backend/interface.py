@@ -38,11 +38,16 @@ class SubmapFrames:
         T_cam_submap: ``(n, 4, 4)`` float64 their extrinsics (camera-from-submap) in this submap.
         shared: how many leading frames are shared with the previous submap (new there); 0 for a
             submap that shares none. ``True``/``False`` read as 1/0.
+        fitted_link: whether the submap's link to the previous one is a 15-DOF fit (the evidence
+            of a distortion of the whole window), not a camera link; the keyframe graph then sets
+            the stiffness inside the submap from the run's evidence
+            (``BackendConfig.frame_scatter_factor``).
     """
 
     frame_indices: tuple[int, ...]
     T_cam_submap: np.ndarray
     shared: int
+    fitted_link: bool = False
 
     @property
     def new(self) -> range:

@@ -9,7 +9,9 @@ consecutive submaps has a node in each.
 Factors (``x_a ~ Z x_b`` read as in ``sl4slam.backend.pose_graph``, whose factor residual they use):
 
 - inside a submap, between consecutive keyframes ``a`` and ``b``: the frontend's relative pose
-  ``T_cam_a_submap T_cam_b_submap^-1`` (rigid), isotropic ``BackendConfig.frame_sigma``;
+  ``T_cam_a_submap T_cam_b_submap^-1`` (rigid), isotropic ``BackendConfig.frame_sigma``; in a
+  submap whose link is a 15-DOF fit, stiffer where consecutive windows agree about their shared
+  frames better than that (:meth:`KeyframeBackend.chain_sigma`);
 - between submaps, between the previous submap's last node and this submap's first: the odometry
   measurement, which the pipeline hands over in submap coordinates (``H_prev_cur``, measured on the
   frames the two submaps share), moved onto the nodes: ``L = T_cam,prev H_prev_cur T_cam,cur^-1``.
@@ -47,6 +49,28 @@ from .pose_graph import transport_information
 from .sl4 import SL4PoseGraph
 
 
+def relative_rotation_disagreement(T_older: np.ndarray, T_newer: np.ndarray) -> np.ndarray:
+    """How much two windows disagree about the relative rotation of consecutive shared frames.
+
+    Args:
+        T_older: ``(n, 4, 4)`` the shared frames' extrinsics (camera-from-submap) in the older submap.
+        T_newer: ``(n, 4, 4)`` the same frames' extrinsics in the newer submap, same order.
+
+    Returns:
+        ``(n - 1,)`` radians: the angle of ``R_k R_k+1^T`` (older) against the same in the newer
+        submap, for each pair ``k, k + 1``. Rotations only: each window has its own scale, which
+        the translations carry. Empty for fewer than two frames.
+    """
+    from scipy.spatial.transform import Rotation
+
+    R_older, R_newer = np.asarray(T_older)[:, :3, :3], np.asarray(T_newer)[:, :3, :3]
+    if len(R_older) < 2:
+        return np.zeros(0)
+    rel_older = R_older[:-1] @ np.swapaxes(R_older[1:], 1, 2)
+    rel_newer = R_newer[:-1] @ np.swapaxes(R_newer[1:], 1, 2)
+    return Rotation.from_matrix(rel_older @ np.swapaxes(rel_newer, 1, 2)).magnitude()
+
+
 @dataclass
 class _Submap:
     nodes: list[int]
@@ -79,7 +103,7 @@ class KeyframeBackend(Backend):
         self.config = config
         self.nodes = SL4PoseGraph(config, revisit_priors=config.revisit_priors)
         self._generators = self.nodes.generators()
-        self._frame_information = np.eye(self.dim) / config.frame_sigma**2
+        self._frame_scatters: list[float] = []  # radians, one per pair of consecutive shared frames
         self._submaps: dict[int, _Submap] = {}
         self._order: list[int] = []
         self._segments: list[int] = []
@@ -97,18 +121,30 @@ class KeyframeBackend(Backend):
         T = np.asarray(frames.T_cam_submap, dtype=np.float64)
         if T.shape != (len(frames.frame_indices), 4, 4) or not np.isfinite(T).all():
             raise ValueError(f"submap {submap_id}: T_cam_submap must be finite, shape ({len(frames.frame_indices)}, 4, 4)")
-        return SubmapFrames(tuple(int(i) for i in frames.frame_indices), T, int(frames.shared))
+        return SubmapFrames(tuple(int(i) for i in frames.frame_indices), T, int(frames.shared), bool(frames.fitted_link))
 
     def _new_nodes(self, count: int) -> list[int]:
         nodes = list(range(self._next_node, self._next_node + count))
         self._next_node += count
         return nodes
 
+    def chain_sigma(self, frames: SubmapFrames) -> float:
+        """Sigma of the links between the keyframes of the submap ``frames``: ``frame_sigma``; for a
+        submap joined by a 15-DOF fit (``frames.fitted_link``), ``frame_scatter_factor`` times the
+        median disagreement so far (:func:`relative_rotation_disagreement`) where that is smaller,
+        at least ``min_sigma`` (``BackendConfig.frame_scatter_factor``)."""
+        factor = self.config.frame_scatter_factor
+        if factor == 0 or not self._frame_scatters or not frames.fitted_link:
+            return self.config.frame_sigma
+        measured = factor * float(np.median(self._frame_scatters))
+        return float(np.clip(measured, self.config.min_sigma, self.config.frame_sigma))
+
     def _chain(self, nodes: list[int], frames: SubmapFrames) -> None:
-        """Consecutive keyframes of a submap: their relative pose, isotropic ``frame_sigma``."""
+        """Consecutive keyframes of a submap: their relative pose, isotropic :meth:`chain_sigma`."""
         T = frames.T_cam_submap
+        information = np.eye(self.dim) / self.chain_sigma(frames)**2
         for k in range(1, len(nodes)):
-            self.nodes.add_node(nodes[k], T[k - 1] @ se3_inverse(T[k]), self._frame_information)
+            self.nodes.add_node(nodes[k], T[k - 1] @ se3_inverse(T[k]), information)
 
     def _register(self, submap_id: int, nodes: list[int], frames: SubmapFrames, segment: bool) -> None:
         self._submaps[submap_id] = _Submap(nodes, frames)
@@ -138,6 +174,8 @@ class KeyframeBackend(Backend):
                 raise ValueError(f"submap {submap_id} must start with keyframes of the previous submap "
                                  f"({list(previous.frames.frame_indices)}) to be linked to it; "
                                  f"got frames {list(frames.frame_indices)} with {frames.shared} shared")
+            self._frame_scatters.extend(relative_rotation_disagreement(
+                previous.frames.T_cam_submap[-len(shared):], T[:len(shared)]).tolist())
             T_prev = previous.frames.T_cam_submap[-1]  # the engine links a new node to the last one added
             link = T_prev @ np.asarray(H_prev_cur, dtype=np.float64) @ se3_inverse(T[0])
             moved = None if information is None else transport_information(information, T_prev, self._generators)
