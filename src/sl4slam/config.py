@@ -375,7 +375,8 @@ class BackendConfig(Section):
     per-frame camera errors (vggt, hard) the windows disagree by 1.6-2.3 degrees, twice that is above
     ``frame_sigma`` and nothing changes (benchmarks/results/levers.md). 2 because the disagreement
     of two windows is sqrt(2) times one window's error: about 3 standard errors of margin. Only
-    submaps with a 15-DOF link: the same stiffness for every submap left desk at 0.0010 m."""
+    submaps with a 15-DOF link: the same stiffness for every submap left desk at 0.0010 m
+    (exploratory runs, 3 seeds)."""
     weighting: str = "evidence"
     """Noise of each edge: "evidence" (information from the alignment's own inliers, residuals and
     point spread; see ``sl4slam.backend.evidence``) or "fixed" (one isotropic ``sigma`` for every

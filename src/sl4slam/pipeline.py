@@ -31,12 +31,10 @@ Nothing that goes wrong inside a submap ends a run:
 
 from __future__ import annotations
 
-import dataclasses
-
 import bisect
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -493,7 +491,7 @@ class SLAMPipeline:
                 log.info("submap %d->%d: %s", previous, submap_id, odometry.fallback)
             relative = self._graph_measurement(odometry.H)
             if not is_camera_link(odometry) and not odometry.fallback:  # a window distortion: stiffer inside
-                frames = dataclasses.replace(frames, fitted_link=True)
+                frames = replace(frames, fitted_link=True)
             self.backend.add_submap(submap_id, relative, self.edge_information(odometry), frames=frames)
             try:
                 self.backend.update()
