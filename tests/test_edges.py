@@ -7,10 +7,12 @@ import dataclasses
 import gtsam
 import numpy as np
 import pytest
+from scipy.linalg import logm
+from scipy.spatial.transform import Rotation
 
 from sl4slam.alignment import camera_constrained_sl4, estimate_sl4, make_aligner, shared_pixels
 from sl4slam.backend import SL4Backend
-from sl4slam.backend.evidence import edge_information, transfer_jacobians
+from sl4slam.backend.evidence import edge_information, tangent_coordinates, transfer_jacobians
 from sl4slam.config import AlignmentConfig, BackendConfig, SLAMConfig
 from sl4slam.edges import camera_problem, edge_problem, is_camera_link
 from sl4slam.geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse
@@ -194,6 +196,41 @@ def test_calibration_scale_link_measures_a_flat_frame_without_its_points() -> No
     exact = make_aligner(submap_graph_config()).camera_edge(
         dataclasses.replace(view_a, points=X_a.reshape(60, 80, 3).astype(np.float32)), view_b)
     np.testing.assert_allclose(apply_transform(exact.H, X_b), X_a, atol=1e-5)
+
+
+def test_camera_links_are_weighted_by_their_cameras_fitted_edges_by_their_points() -> None:
+    """A camera link's error is its frame's camera error, which its points cannot show: the model
+    places the frame's depth with the same wrong camera, so the link maps the points exactly
+    whatever the error. Evidence weighting then claims a precision the link does not have (the
+    true error scores a huge chi-square); "auto" gives it the single sigma, under which it scores
+    as the error it is. A fitted edge keeps its evidence under "auto"."""
+    rng = np.random.default_rng(12)
+    K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
+    v, u = np.mgrid[0:60, 0:80] * 4.0
+    pixels = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], 1)
+    depth = 2.0 + 0.5 * np.sin(pixels[:, 0] / 50.0) * np.cos(pixels[:, 1] / 40.0)
+    X_cam = (np.linalg.inv(K) @ pixels.T).T * depth[:, None]
+    T_cam_a = se3_inverse(np.block([[random_rotation(rng, 0.3), np.array([[0.2], [0.1], [-0.3]])], [np.zeros((1, 3)), 1]]))
+    wrong = np.eye(4)  # the model's camera of the frame in submap a: turned 2 degrees about its centre
+    wrong[:3, :3] = Rotation.from_rotvec(np.deg2rad(2.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    wrong_T_cam_a = wrong @ T_cam_a
+    views = [FrameView(apply_transform(se3_inverse(T), X_cam).reshape(60, 80, 3).astype(np.float32),
+                       np.ones((60, 80), bool), K, T) for T in (wrong_T_cam_a, np.eye(4))]
+    link = make_aligner(SLAMConfig()).camera_edge(*views)
+    true_link = make_aligner(SLAMConfig()).camera_edge(
+        dataclasses.replace(views[0], points=apply_transform(se3_inverse(T_cam_a), X_cam).reshape(60, 80, 3).astype(np.float32),
+                            T_cam_submap=T_cam_a), views[1])
+    assert is_camera_link(link) and link.rms < 1e-5  # the points agree with the wrong camera exactly
+    xi = tangent_coordinates(np.real(logm(normalize_sl4(true_link.H) @ np.linalg.inv(normalize_sl4(link.H)))), GENERATORS)
+    evidence = edge_information(link, GENERATORS, BackendConfig(weighting="evidence"))
+    auto = edge_information(link, GENERATORS, BackendConfig())
+    assert xi @ evidence @ xi / 15 > 100  # overconfident: the error sits far outside what it claims
+    assert xi @ auto @ xi / 15 < 3
+    np.testing.assert_allclose(auto, np.eye(15) / BackendConfig().sigma**2)
+    H = near_identity_sl4(rng)
+    fitted = alignment_from(H, rng.uniform([-1, -1, 1], [1, 1, 3], size=(300, 3)), rms=0.003)
+    np.testing.assert_allclose(edge_information(fitted, GENERATORS, BackendConfig()),
+                               edge_information(fitted, GENERATORS, BackendConfig(weighting="evidence")))
 
 
 def decompose_pose(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

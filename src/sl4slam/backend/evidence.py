@@ -23,7 +23,10 @@ per-axis variance of the inlier residuals (``rms^2 / 3``). Three corrections mak
   ``fallback_sigma_scale^2``, so loops correct those links first.
 
 With ``BackendConfig.weighting = "fixed"`` every edge gets the isotropic ``sigma`` (the reference
-code's 0.05), still inflated for fallbacks.
+code's 0.05), still inflated for fallbacks; with "auto" (the default) so do the edges read from the
+cameras (:func:`sl4slam.edges.is_camera_link`): their error is the shared frames' camera errors,
+which the residuals of their points do not measure, while a fitted edge's error is what its points
+say.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..config import BackendConfig
+from ..edges import is_camera_link
 from ..types import Alignment
 
 
@@ -65,9 +69,10 @@ def edge_information(alignment: Alignment, generators: np.ndarray, config: Backe
     dim = len(generators)
     inflation = config.fallback_sigma_scale**2 if alignment.fallback else 1.0
     support = alignment.support
-    if config.weighting == "fixed" or support is None or len(support[1]) < 3:
-        sigma = config.sigma if config.weighting == "fixed" else config.max_sigma
-        return isotropic_information(dim, sigma) / inflation
+    if config.weighting == "fixed" or (config.weighting == "auto" and is_camera_link(alignment)):
+        return isotropic_information(dim, config.sigma) / inflation
+    if support is None or len(support[1]) < 3:
+        return isotropic_information(dim, config.max_sigma) / inflation
     X_a, X_b = support
     J = transfer_jacobians(alignment.H, X_b, generators)  # (n, 3, dim)
     variance = max(alignment.rms, 1e-12) ** 2 / 3.0  # per axis; exact fits are bounded by the clamp below
