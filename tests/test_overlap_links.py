@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from sl4slam.alignment.aligner import CalibrationAligner, SelectAligner, SL4Aligner
+from sl4slam.alignment.select import fit_predicts_better
 from sl4slam.backend import KeyframeBackend, SubmapFrames
 from sl4slam.backend.evidence import NoiseScale, link_scatter
 from sl4slam.config import AlignmentConfig, BackendConfig, SimulatorConfig, SLAMConfig
@@ -121,6 +122,25 @@ def test_select_keeps_the_link_when_the_fit_only_absorbs_frame_warps(frames: lis
         pairs, _ = two_submaps(frames[6:], sim, 2)  # shared frames with relief (not degenerate)
         link = SelectAligner(config).align_frames(pairs, seed=0)
         assert link.extras["select"]["chosen"] == expected, link.extras["select"]
+
+
+def test_two_folds_need_a_real_gain_before_the_fit_replaces_the_link(frames: list) -> None:
+    """Two shared frames under the hard profile's per-frame errors (seed 27): the two folds are one
+    comparison seen from both sides, so they agree (held-out log ratios -0.10 and -0.10) and the
+    t-test alone takes the fit for a 1.1x better prediction; that fit is farther from the true
+    transform than the calibration link. With the default gain (2x) the link is kept; a window's
+    distortion, predicted 7-60x better, still passes."""
+    pairs, H_true = two_submaps(frames[6:], SimulatorConfig(profile="hard", seed=27), 2)
+    test_alone = SelectAligner(AlignmentConfig(select_min_gain=1.0)).align_frames(pairs, seed=0)
+    ratios = test_alone.extras["select"]["held_out_log_ratios"]
+    assert test_alone.extras["select"]["chosen"] == "fit" and abs(ratios[0] - ratios[1]) < 0.02 and -0.2 < min(ratios)
+    link = CalibrationAligner(AlignmentConfig()).align_frames(pairs, seed=0)
+    assert link_error(test_alone.H, H_true, pairs) > 1.2 * link_error(link.H, H_true, pairs)
+    chosen = SelectAligner(AlignmentConfig()).align_frames(pairs, seed=0)
+    assert chosen.extras["select"]["chosen"] == "link"
+    np.testing.assert_allclose(chosen.H, link.H)
+    assert not fit_predicts_better(np.array(ratios), 0.95, 2.0) and fit_predicts_better(np.array(ratios), 0.95, 1.0)
+    assert fit_predicts_better(np.array([-3.87, -3.85]), 0.95, 2.0)
 
 
 def test_a_flat_shared_frame_still_lets_the_other_judge_the_fit(frames: list) -> None:

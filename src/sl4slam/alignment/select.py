@@ -13,10 +13,16 @@ Prediction tells them apart. With two or more shared frames, each model is measu
 them but one and judged on the one left out: a distortion of the window, measured on the other
 frames, predicts it; another frame's warp does not. The fit is chosen only where it predicts the
 left-out frames better than the link at ``AlignmentConfig.select_confidence`` (a one-sided paired
-t-test over the left-out frames, each frame one observation: its pixels err together). That is a
-test at a conventional level, not a tuned margin; the gain it finds rests on per-frame errors being
-independent between frames (the simulator draws each frame's depth warp and camera error on its
-own), and a real model whose frames of one window err alike would make the link win more often.
+t-test over the left-out frames, each frame one observation: its pixels err together), and by at
+least ``AlignmentConfig.select_min_gain`` (2x). The t-test counts the folds as independent; with two
+shared frames they are not: the fit on the first predicting the second and the fit on the second
+predicting the first are one comparison seen from both sides (log ratios correlated at 0.995), so
+their spread is no measure of noise, and the test alone passed wherever the fit predicted better at
+all: 1.02-1.2x under per-frame errors, where the fit then bent the next submap. A window's
+distortion is predicted 7-60x better, so the gain separates the two with room on either side. The
+gain found rests on per-frame errors being independent between frames (the simulator draws each
+frame's depth warp and camera error on its own), and a real model whose frames of one window err
+alike would make the link win more often.
 With one shared frame nothing is left to judge on, and the link, the model that assumes less, is
 kept.
 
@@ -53,13 +59,14 @@ def transfer_distances(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray) -> np.nd
     return np.sqrt(np.where(in_front[0], r2[0], np.inf))
 
 
-def fit_predicts_better(log_ratios: np.ndarray, confidence: float) -> bool:
+def fit_predicts_better(log_ratios: np.ndarray, confidence: float, min_gain: float = 1.0) -> bool:
     """One-sided paired t-test over the held-out parts: is the fit's held-out error (log of its median
     transfer distance over the link's, ``log_ratios`` ``(k,)``, one per held-out part) below the
-    link's at ``confidence``? The parts are the independent units: the pixels of one frame err
-    together (a smooth warp), so they are one observation, not thousands."""
+    link's at ``confidence``, and at most ``1 / min_gain`` of it (geometric mean)? The parts are the
+    units: the pixels of one frame err together (a smooth warp), so they are one observation, not
+    thousands; two parts are nearly one (see the module doc), hence the gain."""
     mean = float(np.mean(log_ratios))
-    if len(log_ratios) < 2 or mean >= 0:
+    if len(log_ratios) < 2 or mean >= -np.log(min_gain) or mean >= 0:
         return False
     spread = float(np.std(log_ratios, ddof=1))
     if spread == 0.0:
@@ -90,7 +97,7 @@ def choose_link(fit_aligner: "SL4Aligner", link_aligner: "CalibrationAligner",
         return link
     folds = _frame_folds(fit_aligner, pairs, fits, links, common, seed)
     log_ratios = np.array([np.log(max(np.median(e_fit), 1e-12) / max(np.median(e_link), 1e-12)) for e_fit, e_link in folds])
-    better = fit_predicts_better(log_ratios, fit_aligner.config.select_confidence)
+    better = fit_predicts_better(log_ratios, fit_aligner.config.select_confidence, fit_aligner.config.select_min_gain)
     chosen = fitted if better else link
     chosen.extras["select"] = {"chosen": "fit" if better else "link", "held_out_log_ratios": log_ratios.tolist()}
     return chosen
