@@ -42,6 +42,8 @@ from _report import write_report  # noqa: E402
 WORK = HERE / "out" / "levers"
 TUM_DESK = HERE.parents[1] / "shared" / "data" / "tum_rgbd_fr1_desk"
 WORLDS = {"synthetic": "synthetic world (600 frames, 320x240, one lap)", "desk": "TUM fr1/desk (613 frames)"}
+WINDOW_OFF = "its distortion common to a window (perspective, shear 0)"
+POSES_OFF = "its per-frame pose errors (camera rotation, translation 0)"
 PROFILES = {
     # name: (sim profile, explicit magnitudes, what it is)
     "vggt": ("vggt", {}, "VGGT-like errors (per-frame cameras, focal, smooth depth warps, flying pixels)"),
@@ -52,14 +54,14 @@ PROFILES = {
                    "the vggt profile with each frame's focal error drawn afresh in every window"),
     # Diagnostics: one error term of a profile switched off, to name the term a missed target rests on.
     "vggt-nowin": ("vggt", {"perspective": 0.0, "shear": 0.0},
-                   "diagnostic: the vggt profile without its distortion common to a window (perspective, shear 0)"),
+                   f"diagnostic: the vggt profile without {WINDOW_OFF}"),
     "hard-nowin": ("hard", {"perspective": 0.0, "shear": 0.0},
-                   "diagnostic: the hard profile without its distortion common to a window (perspective, shear 0)"),
+                   f"diagnostic: the hard profile without {WINDOW_OFF}"),
     "vggt-nocam": ("vggt", {"camera_rotation_deg": 0.0, "camera_translation": 0.0},
-                   "diagnostic: the vggt profile without its per-frame pose errors (camera rotation, translation 0)"),
+                   f"diagnostic: the vggt profile without {POSES_OFF}"),
 }
-DIAGNOSTIC = {"vggt-nowin": "vggt", "hard-nowin": "hard", "vggt-nocam": "vggt"}
-"""Each diagnostic profile and the full profile it is compared with."""
+DIAGNOSTIC = {"vggt-nowin": ("vggt", WINDOW_OFF), "hard-nowin": ("hard", WINDOW_OFF), "vggt-nocam": ("vggt", POSES_OFF)}
+"""Each diagnostic profile: the full profile it is compared with, and the term it switches off."""
 VARIANTS = {
     # name: (settings, what it is)
     "baseline": ({}, "VGGT-SLAM 2.0: keyframe graph, calibration links, 1 shared frame, the model's K, one sigma "
@@ -320,12 +322,11 @@ TARGET_CHECKS = [("defaults / baseline", "defaults", "baseline", 0.8),
 
 def targets(runs: list[dict]) -> list[str]:
     """The figures the defaults are held to, each a median of per-seed ratios (range)."""
-    checks = TARGET_CHECKS
     lines = ["**Targets** (median of per-seed ratios, range; a dash: not run)", "",
              "| world | profile | ratio | target | median (range) | seeds | met |", "|---|---|---|---|---|---|---|"]
     for world in WORLDS:
         for profile in (p for p in PROFILES if p not in DIAGNOSTIC):
-            rows = [(name, _paired(runs, world, profile, a, b), goal) for name, a, b, goal in checks]
+            rows = [(name, _paired(runs, world, profile, a, b), goal) for name, a, b, goal in TARGET_CHECKS]
             medians = {v: np.median([r["ate"] for r in runs if (r["world"], r["profile"], r["variant"]) == (world, profile, v)])
                        for v in ("defaults", "baseline", "submap")
                        if any((r["world"], r["profile"], r["variant"]) == (world, profile, v) for r in runs)}
@@ -348,12 +349,12 @@ def diagnostics(runs: list[dict]) -> list[str]:
              "beside the full profile; median of per-seed ratios, range)", "",
              "| world | ratio | full profile | full | term switched off | without it |", "|---|---|---|---|---|---|"]
     for world in WORLDS:
-        for profile, full in DIAGNOSTIC.items():
+        for profile, (full, term) in DIAGNOSTIC.items():
             for name, a, b, _ in TARGET_CHECKS:
                 off, on = _paired(runs, world, profile, a, b), _paired(runs, world, full, a, b)
                 if len(off) and len(on):
                     lines.append(f"| {world} | {name} | {full} | {np.median(on):.2f} ({on.min():.2f}-{on.max():.2f}) | "
-                                 f"{PROFILES[profile][2].split('without ')[1]} | "
+                                 f"{term} | "
                                  f"{np.median(off):.2f} ({off.min():.2f}-{off.max():.2f}) |")
     return lines + [""] if len(lines) > 4 else []
 
