@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -91,3 +92,68 @@ def test_bad_setting_is_a_one_line_error_before_any_work(tmp_path: Path, capsys,
 def test_every_verb_has_help(verb: str) -> None:
     proc = _run_cli(verb, "--help")
     assert proc.returncode == 0 and "usage" in proc.stdout
+
+
+def test_ate_prints_metres_and_labels_the_scale(tmp_path: Path, capsys) -> None:
+    times = np.arange(6) * 0.1
+    positions = np.stack([times, np.sin(times), 0.5 * times], axis=1)
+    for name, scale in (("gt.txt", 1.0), ("est.txt", 0.5)):  # the estimate at half the size
+        (tmp_path / name).write_text("".join(f"{t:.3f} {' '.join(f'{v:.6f}' for v in scale * p)} 0 0 0 1\n"
+                                             for t, p in zip(times, positions)))
+    assert main(["ate", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt")]) == 0
+    line = capsys.readouterr().out.strip()
+    for figure in ("rmse", "mean", "median", "max"):
+        assert re.search(rf"\b{figure} \d+\.\d+ m\b", line), line
+    assert re.search(r"Sim\(3\) scale factor 2\.0000", line), line
+    assert main(["ate", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--no-scale"]) == 0
+    line = capsys.readouterr().out.strip()
+    assert re.search(r"\brmse \d+\.\d+ m\b", line) and "scale not corrected" in line, line
+
+
+# ------------------------------------------------------------------------------------- help texts
+def test_run_help_is_short_and_shows_the_settings_most_runs_touch(capsys) -> None:
+    from sl4slam.cli_help import RUN_OPTIONS, common_destinations
+
+    with pytest.raises(SystemExit) as stop:
+        main(["run", "--help"])
+    assert stop.value.code == 0
+    text = capsys.readouterr().out
+    assert len(text.splitlines()) < 80
+    for flag in (*RUN_OPTIONS, "--frontend", "--weights", "--device", "--intrinsics", "--graph", "--submap-size",
+                 "--retrieval", "--sim-profile"):
+        assert re.search(rf"^\s+{re.escape(flag)}\b", text, re.M), flag
+    assert len(common_destinations()) >= 10
+    assert "--help-all" in text and "--ransac-iterations" not in text  # the rest is one flag away
+
+
+def test_help_all_lists_every_setting_and_searches(capsys) -> None:
+    parser = build_parser()
+    run = next(a for a in parser._actions if isinstance(a, __import__("argparse")._SubParsersAction)).choices["run"]
+    every_flag = {flag for action in run._actions for flag in action.option_strings}
+    with pytest.raises(SystemExit):
+        main(["run", "--help-all"])
+    text = capsys.readouterr().out
+    assert all(flag in text for flag in every_flag)
+    with pytest.raises(SystemExit) as stop:
+        main(["run", "--help-all", "RANSAC-SEED"])  # case-insensitive
+    assert stop.value.code == 0
+    found = capsys.readouterr().out
+    assert "--ransac-seed" in found and "--submap-size" not in found and len(found.splitlines()) < 10
+
+
+def test_help_all_with_a_word_that_matches_nothing_is_one_line() -> None:
+    proc = _run_cli("run", "--help-all", "zzqx")
+    _assert_one_line_error(proc, "zzqx", "--help-all")
+    assert proc.stdout == ""
+
+
+def test_a_mistyped_flag_gets_runs_usage_and_the_closest_names(tmp_path: Path) -> None:
+    proc = _run_cli("run", str(tmp_path), "--out", str(tmp_path / "o"), "--submap-sise", "8")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert lines[0].startswith("usage: sl4slam run SOURCE")  # run's usage, not the top level's
+    assert "--submap-sise" in lines[-1] and "did you mean --submap-size" in lines[-1]
+    proc = _run_cli("run", str(tmp_path), "--out", str(tmp_path / "o"), "--qqqqqqq")
+    assert "no flag of that name" in proc.stderr and "sl4slam run --help" in proc.stderr
+    proc = _run_cli("export", str(tmp_path), "--formt", "ply")
+    assert "usage: sl4slam export" in proc.stderr and "did you mean --format" in proc.stderr

@@ -271,6 +271,19 @@ def test_backend_sweep_replays_one_recording_per_sequence_and_seed(tum_root, tmp
     assert again.results[0]["metrics"]["ate_rmse"] == recorded["metrics"]["ate_rmse"]
 
 
+def test_simulated_runs_are_labelled_simulated_with_their_profile(tum_root, tmp_path) -> None:
+    import io
+
+    config = small_config(profile="vggt")
+    stream = io.StringIO()
+    outcome = evaluate(tum_root, tmp_path / "eval", EvalSettings(dataset="tum", runs=1), config, sequences=["world-0"],
+                       workers=1, stream=stream)
+    assert outcome.results[0]["frontend"] == "simulated (profile vggt)"
+    assert "frontend simulated (profile vggt)" in stream.getvalue() and "model" not in stream.getvalue()
+    with open(tmp_path / "eval" / "runs.csv") as handle:
+        assert [r["frontend"] for r in csv.DictReader(handle)] == ["simulated (profile vggt)"]
+
+
 @pytest.mark.slow  # spawning the workers takes ~30 s on 2 cores; the fast set checks LocalExecutor on its own
 def test_a_process_pool_gives_the_numbers_of_a_serial_evaluation(tum_root, tmp_path) -> None:
     config = small_config(perspective=0.05)

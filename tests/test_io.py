@@ -401,3 +401,14 @@ def test_bad_stride_is_user_error(tmp_path):
         open_source(tmp_path, stride=0)
     with pytest.raises(UserError):
         open_source(tmp_path, max_frames=-1)
+
+
+def test_a_random_bytes_video_is_one_clean_line_without_library_noise(tmp_path, capfd):
+    from sl4slam.cli import main
+
+    video = tmp_path / "noise.mp4"
+    video.write_bytes(np.random.default_rng(0).integers(0, 256, 20_000, dtype=np.uint8).tobytes())
+    assert main(["run", str(video), "--out", str(tmp_path / "out"), "--frontend", "simulated", "--quiet"]) == 2
+    err = [line for line in capfd.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and err[0].startswith("sl4slam: error:") and "noise.mp4" in err[0], err
+    assert not (tmp_path / "out").exists()

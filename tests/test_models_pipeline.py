@@ -137,3 +137,19 @@ def test_a_model_named_on_the_command_line_runs_with_every_graph_cache_replay_an
                      str(out / "frontend_cache"), *common]) == 0
         np.testing.assert_array_equal(read_tum_trajectory(replayed / "trajectory.txt")[1],
                                       read_tum_trajectory(out / "trajectory.txt")[1])
+
+
+def test_a_model_on_the_cpu_says_its_cost_before_the_first_frame_unless_quiet(
+        world: Path, fixtures_dir: Path, tmp_path: Path, capfd) -> None:
+    from sl4slam.models.da3 import save_checkpoint
+
+    model = tiny_da3(fixtures_dir).model
+    weights = save_checkpoint(model.state_dict(), tmp_path / "tiny.safetensors", model.config)
+    common = ["--model", "da3-small", "--weights", str(weights), "--device", "cpu", "--submap-size", "4",
+              "--tau-disparity", "12", "--max-frames", "24", "--retrieval", "none"]
+    assert main(["run", str(world), "--out", str(tmp_path / "loud"), *common]) == 0
+    err = capfd.readouterr().err.splitlines()
+    lines = [line for line in err if "on this CPU" in line]
+    assert len(lines) == 1 and "da3-small needs about" in lines[0] and "24 frames of this source" in lines[0]
+    assert main(["run", str(world), "--out", str(tmp_path / "quiet"), *common, "--quiet"]) == 0
+    assert "on this CPU" not in capfd.readouterr().err

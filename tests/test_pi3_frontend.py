@@ -152,7 +152,8 @@ def test_frontend_returns_a_well_formed_submap(frontend):
     assert prediction.confidence.shape == (S, H, W) and prediction.confidence.dtype == np.float32
     assert np.all(prediction.confidence >= 1)
     assert prediction.T_cam_submap.shape == (S, 3, 4) and prediction.T_cam_submap.dtype == np.float64
-    np.testing.assert_allclose(prediction.T_cam_submap[0], np.eye(4)[:3], atol=1e-6)
+    # the first camera relative to itself: identity up to the float32 rotation's own non-orthogonality
+    np.testing.assert_allclose(prediction.T_cam_submap[0], np.eye(4)[:3], atol=1e-5)
     rotations = prediction.T_cam_submap[:, :, :3]
     np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.tile(np.eye(3), (S, 1, 1)), atol=1e-5)
     assert prediction.K.shape == (S, 3, 3) and prediction.K.dtype == np.float64

@@ -21,7 +21,7 @@ from sl4slam.errors import MissingWeightsError, UserError
 from sl4slam.io import read_tum_trajectory
 from sl4slam.result.outputs import read_ply
 from sl4slam.result.reading import load_result
-from sl4slam.runner import format_length, prepare_output, run_slam
+from sl4slam.runner import RunInterrupted, format_length, prepare_output, run_slam
 from sl4slam.synthetic import write_synthetic_sequence
 
 
@@ -130,6 +130,24 @@ def test_sigint_finishes_the_submap_and_writes_everything(tmp_path: Path) -> Non
     assert not list(out.rglob("*.tmp*"))
     frames_total = len((world / "rgb.txt").read_text().splitlines()) - 1
     assert summary["counts"]["frames"] < frames_total  # it really stopped early
+
+
+@pytest.mark.parametrize("metres, text", [(0.0312, "0.0312 m"), (0.00421, "4.21 mm"), (9.03e-6, "9.03 µm"),
+                                          (1.4e-9, "1.4 nm"), (1.4e-15, "< 1 nm"), (0.0, "0 m")])
+def test_lengths_read_well_down_to_a_nanometre(metres: float, text: str) -> None:
+    assert format_length(metres) == text
+
+
+@pytest.mark.parametrize("signum, exit_code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signal_ends_the_run_with_128_plus_its_number(world: Path, tmp_path: Path, signum, exit_code) -> None:
+    def send(pipeline, submap_id):
+        if submap_id == 1:
+            os.kill(os.getpid(), signum)
+
+    with pytest.raises(RunInterrupted, match="interrupted after") as caught:
+        run_slam(world, tmp_path / "out", sim_config(), progress=False, on_submap=send)
+    assert caught.value.exit_code == exit_code
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["status"] == "interrupted"
 
 
 def test_missing_weights_offline_fail_before_any_frame_is_read(tmp_path: Path, monkeypatch) -> None:

@@ -14,6 +14,7 @@ from sl4slam.models.checkpoint import WeightsFileError, check_weights_file, desc
 from sl4slam.models.hub import VGGT_WEIGHTS, resolve_weights
 from sl4slam.models.salad import load_salad
 from sl4slam.models.vggt.weights import load_vggt
+from sl4slam.resolve import model_of_weights
 
 FIX = "delete it and fetch it again"
 
@@ -157,3 +158,34 @@ def test_a_cut_weights_file_fails_a_run_before_any_frame_is_read(tmp_path, tenso
     with pytest.raises(WeightsFileError) as caught:
         run_slam(folder, tmp_path / "out", config, progress=False)
     assert "cut short" in _one_line(caught, cut) and read == [] and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("suffix", [".pt", ".safetensors"])
+def test_convert_of_a_cut_file_says_cut_short_and_how_convert_takes_it(tmp_path, tensors, capsys, suffix) -> None:
+    from sl4slam.cli import main
+
+    whole = tmp_path / f"whole{suffix}"
+    torch.save(tensors, whole) if suffix == ".pt" else save_file(tensors, str(whole))
+    cut = tmp_path / f"cut{suffix}"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    for model in ([], ["--model", "vggt"]):  # recognized from the file, or named
+        assert main(["convert", str(cut), str(tmp_path / "out.safetensors"), *model]) == 2
+        lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert len(lines) == 1 and str(cut) in lines[0], lines
+        assert "cut short" in lines[0] and "known model" not in lines[0]
+        assert "to sl4slam convert" in lines[0] and "--weights" not in lines[0]
+    assert not (tmp_path / "out.safetensors").exists()
+    with pytest.raises(WeightsFileError, match="then pass it with --weights PATH"):  # a run keeps its flag
+        load_vggt(str(cut))
+    with pytest.raises(WeightsFileError, match="cut short.*then pass it with --model PATH"):  # run --model FILE
+        model_of_weights(str(cut))
+
+
+def test_convert_of_another_models_checkpoint_names_convert_not_a_flag(tmp_path, fixtures_dir, capsys) -> None:
+    from sl4slam.cli import main
+
+    salad = fixtures_dir / "salad_tiny" / "state_dict.safetensors"
+    assert main(["convert", str(salad), str(tmp_path / "out.safetensors"), "--model", "vggt"]) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "holds a SALAD checkpoint" in lines[0]
+    assert "pass a VGGT checkpoint to sl4slam convert" in lines[0] and "--weights" not in lines[0]

@@ -23,6 +23,7 @@ from typing import Any, Sequence
 from . import __version__
 from .config import SLAMConfig, config_from_dict, read_config_file
 from .config import sections as sections_of
+from .cli_help import HelpAll, ShortHelp, unknown_flags, unknown_flags_message
 from .errors import UserError
 
 log = logging.getLogger("sl4slam")
@@ -237,20 +238,22 @@ def _add_eval_arguments(parser: argparse.ArgumentParser, grid_required: bool) ->
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
+    from .models.checkpoint import weights_passed_as
     from .registry import frontend_entry
     from .resolve import model_of_weights
 
-    if args.model:
-        entry = frontend_entry(args.model)
-    else:
-        entry = model_of_weights(args.src)
-        if entry is None:
-            raise UserError(f"{args.src}: not a checkpoint of a known model (or not found); name it with --model "
-                            "(sl4slam models lists them)")
-    if entry.convert is None:
-        raise UserError(f"{entry.name} has no weights to convert")
-    dtype = "bf16" if args.bf16 else args.dtype
-    entry.convert(args.src, args.dst, dtype)
+    with weights_passed_as("pass {it} to sl4slam convert"):
+        if args.model:
+            entry = frontend_entry(args.model)
+        else:
+            entry = model_of_weights(args.src)
+            if entry is None:
+                raise UserError(f"{args.src}: not a checkpoint of a known model (or not found); name it with --model "
+                                "(sl4slam models lists them)")
+        if entry.convert is None:
+            raise UserError(f"{entry.name} has no weights to convert")
+        dtype = "bf16" if args.bf16 else args.dtype
+        entry.convert(args.src, args.dst, dtype)
     print(f"wrote {args.dst} ({entry.name}, {dtype})")
     return 0
 
@@ -285,8 +288,9 @@ def cmd_ate(args: argparse.Namespace) -> int:
     t_gt, T_gt = read_tum_trajectory(args.groundtruth)
     t_est, T_est = read_tum_trajectory(args.estimate)
     result = ate(t_est, T_est, t_gt, T_gt, max_time_diff=args.max_diff, correct_scale=not args.no_scale)
-    print(f"ATE rmse {result.rmse:.6f}  mean {result.mean:.6f}  median {result.median:.6f}  max {result.max:.6f}  "
-          f"({result.num_poses} poses, scale {result.scale:.4f})")
+    scale = f"Sim(3) scale factor {result.scale:.4f}" if not args.no_scale else "SE(3), scale not corrected"
+    print(f"ATE rmse {result.rmse:.6f} m  mean {result.mean:.6f} m  median {result.median:.6f} m  "
+          f"max {result.max:.6f} m  ({result.num_poses} poses, {scale})")
     return 0
 
 
@@ -297,9 +301,12 @@ def build_parser() -> argparse.ArgumentParser:
     verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
 
     run = verbs.add_parser("run", help="run SLAM on an image folder, video, TUM or 7-Scenes sequence",
-                           usage="sl4slam run SOURCE --out DIR [--config FILE] [settings]",
+                           usage="sl4slam run SOURCE --out DIR [--config FILE] [settings]", add_help=False,
                            description="Every setting below can also be given in a TOML/JSON file (--config); "
                                        "flags override the file. Advanced settings are listed last.")
+    run.add_argument("-h", "--help", action=ShortHelp, help="the run's options and the settings most runs touch")
+    run.add_argument("--help-all", action=HelpAll,
+                     help="every setting, or those whose flag or text contains WORD (e.g. --help-all ransac)")
     run.add_argument("source", help="image folder, video file, TUM RGB-D or 7-Scenes sequence folder, camera index "
                                     "(0, 1, ...) or stream URL (rtsp://, http://): the kind is detected")
     run.add_argument("--out", required=True, help="output folder")
@@ -376,9 +383,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _verb_parsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """Each verb's parser by name."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return dict(action.choices)
+    return {}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    verbs = _verb_parsers(parser)
+    named = next((i for i, token in enumerate(argv) if token in verbs), None)
+    if named is not None:  # a mistyped flag: the verb's own usage and the closest names, before anything else
+        unknown = unknown_flags(verbs[argv[named]], argv[named + 1:])
+        if unknown:
+            verbs[argv[named]].error(unknown_flags_message(verbs[argv[named]], unknown))
+    args, extras = parser.parse_known_args(argv)
+    if extras:
+        verb = verbs.get(getattr(args, "verb", None), parser)
+        verb.error(unknown_flags_message(verb, extras))
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s: %(message)s")
     from .runner import RunInterrupted
 

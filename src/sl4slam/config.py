@@ -29,7 +29,8 @@ class Section:
         flag_names: per-field flag overrides (e.g. the paper's short names).
         flag_aliases: per-field further flags that set the same field (older or shorter names).
         choices: per-field allowed values of string settings.
-        advanced: fields listed under the section's "advanced" group of ``run --help``.
+        advanced: fields listed under the section's "advanced" group of ``run --help-all``.
+        common: fields most runs touch, the ones ``run --help`` shows.
     """
 
     section: ClassVar[str] = ""
@@ -38,6 +39,7 @@ class Section:
     flag_aliases: ClassVar[dict[str, tuple[str, ...]]] = {}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {}
     advanced: ClassVar[frozenset[str]] = frozenset()
+    common: ClassVar[frozenset[str]] = frozenset()
 
     @classmethod
     def flag(cls, name: str) -> str:
@@ -111,6 +113,7 @@ class SubmapConfig(Section):
     """Submap assembly (paper 4.1, 5.1)."""
 
     section: ClassVar[str] = "submap"
+    common: ClassVar[frozenset[str]] = frozenset({"size"})
     flag_prefix: ClassVar[str] = "submap-"
     flag_names: ClassVar[dict[str, str]] = {"tau_conf": "--tau-conf", "w_loop": "--w-loop", "loop_frames": "--loop-frames"}
 
@@ -344,6 +347,7 @@ class BackendConfig(Section):
     """Factor graph over submap transforms (paper 4.4)."""
 
     section: ClassVar[str] = "backend"
+    common: ClassVar[frozenset[str]] = frozenset({"kind", "graph"})
     flag_prefix: ClassVar[str] = "backend-"
     flag_names: ClassVar[dict[str, str]] = {"graph": "--graph"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
@@ -482,6 +486,7 @@ class RetrievalConfig(Section):
     """Loop-closure retrieval (paper 4.3)."""
 
     section: ClassVar[str] = "retrieval"
+    common: ClassVar[frozenset[str]] = frozenset({"kind"})
     flag_names: ClassVar[dict[str, str]] = {"seed": "--retrieval-seed"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {"kind": ("auto", "salad", "orb", "none")}
     advanced: ClassVar[frozenset[str]] = frozenset({
@@ -613,6 +618,7 @@ class SimulatorConfig(Section):
     """
 
     section: ClassVar[str] = "sim"
+    common: ClassVar[frozenset[str]] = frozenset({"profile", "seed"})
     flag_prefix: ClassVar[str] = "sim-"
     choices: ClassVar[dict[str, tuple[str, ...]]] = {"profile": SIM_PROFILES}
 
@@ -850,6 +856,7 @@ class ModelConfig(Section):
     model (``sl4slam models`` lists them)."""
 
     section: ClassVar[str] = "model"
+    common: ClassVar[frozenset[str]] = frozenset({"weights", "dtype"})
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
         "dtype": ("auto", "fp32", "bf16", "fp16", "int8"), "preprocess_mode": ("crop", "pad"),
         "cameras": ("head", "rays")}
@@ -892,6 +899,7 @@ class SourceConfig(Section):
     ``sl4slam.io.open_source``), and what else it knows that the run can use."""
 
     section: ClassVar[str] = "source"
+    common: ClassVar[frozenset[str]] = frozenset({"intrinsics", "max_frames", "stride"})
     flag_names: ClassVar[dict[str, str]] = {"intrinsics": "--intrinsics", "metric_depth": "--metric-depth",
                                             "intrinsics_to_model": "--intrinsics-to-model"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {"metric_depth": ("off", "sensor")}
@@ -1184,6 +1192,7 @@ class SLAMConfig(Section):
     flag_names: ClassVar[dict[str, str]] = {"frontend": "--frontend"}
     flag_aliases: ClassVar[dict[str, tuple[str, ...]]] = {"frontend": ("--model",)}
     advanced: ClassVar[frozenset[str]] = frozenset({"max_frontend_failures", "overlap"})
+    common: ClassVar[frozenset[str]] = frozenset({"frontend", "device"})
 
     frontend: str = "vggt"
     """The frontend that reconstructs each submap: a model ("vggt", "pi3", "pi3x", "da3-small",

@@ -44,6 +44,8 @@ class FrontendEntry:
         recognizes: whether a state dict's key names are this model's (``--model FILE``).
         convert: ``convert(src, dst, dtype)`` writes a ``.safetensors`` copy of a checkpoint of it
             (``sl4slam convert``; dtype "fp32", "bf16" or "fp16").
+        cpu_work: its float32 work per frame of a window on a CPU, in GFLOP-equivalents (the matmul work
+            that takes as long; ``sl4slam.frontend.cost``); ``None``: no model to estimate.
     """
 
     name: str
@@ -56,6 +58,7 @@ class FrontendEntry:
     settings: str = "model"
     recognizes: Callable[[Mapping[str, Any]], bool] | None = None
     convert: Callable[[str, str, str], Any] | None = None
+    cpu_work: float | None = None
 
 
 @dataclass(frozen=True)

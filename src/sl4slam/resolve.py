@@ -196,7 +196,12 @@ def _frontend(settled: SLAMConfig, notes: list[str]) -> FrontendEntry:
 
 def model_of_weights(weights: str) -> FrontendEntry | None:
     """The registered model whose weights ``weights`` are: a hub id one of them names (its own or a
-    file in it), or a local file whose tensor names one of them recognizes; ``None`` otherwise."""
+    file in it), or a local file whose tensor names one of them recognizes; ``None`` otherwise.
+
+    Raises:
+        WeightsFileError: a local file that cannot be read (cut short, corrupt, unreadable): the
+            one line a run gives for it, not "unknown model".
+    """
     from .models.hub import is_hub_id
 
     if is_hub_id(weights):
@@ -211,7 +216,12 @@ def model_of_weights(weights: str) -> FrontendEntry | None:
 
 def _tensor_names(path: Path) -> dict[str, SimpleNamespace]:
     """Tensor names of a weights file with their shapes (``.shape``: models of one family differ in
-    widths only); a safetensors header is read without loading anything."""
+    widths only); a safetensors header is read without loading anything. A file that is cut short,
+    corrupt or unreadable raises :class:`~sl4slam.models.checkpoint.WeightsFileError`."""
+    from .models.checkpoint import check_weights_file, pass_again, read_checkpoint
+
+    fix = f"delete it and fetch it again, then {pass_again('--model')}"
+    check_weights_file(path, "model", fix)
     if path.suffix.lower() == ".safetensors":
         try:
             with open(path, "rb") as handle:
@@ -220,12 +230,7 @@ def _tensor_names(path: Path) -> dict[str, SimpleNamespace]:
             return {k: SimpleNamespace(shape=tuple(v.get("shape", ()))) for k, v in header.items() if k != "__metadata__"}
         except (OSError, ValueError, struct.error, AttributeError):
             return {}
-    from .models.checkpoint import read_checkpoint
-
-    try:
-        state_dict, _ = read_checkpoint(path, "model", "check the file")
-    except UserError:
-        return {}
+    state_dict, _ = read_checkpoint(path, "model", fix)
     return {k: SimpleNamespace(shape=tuple(getattr(v, "shape", ()))) for k, v in state_dict.items()}
 
 

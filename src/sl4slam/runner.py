@@ -36,11 +36,18 @@ log = logging.getLogger("sl4slam")
 
 class RunInterrupted(UserError):
     """The run stopped early (a signal, or a frontend that kept failing) after writing its partial
-    results; ``exit_code`` is 130 for a signal, 1 otherwise."""
+    results; ``exit_code`` is 128 + the signal's number for a signal (130 for SIGINT / Ctrl-C, 143
+    for SIGTERM, :func:`signal_exit_code`), 1 otherwise."""
 
     def __init__(self, message: str, exit_code: int = 1) -> None:
         super().__init__(message)
         self.exit_code = exit_code
+
+
+def signal_exit_code(signum: int) -> int:
+    """The exit status of a program ended by signal ``signum``: 128 + its number (the shell's
+    convention: 130 for SIGINT, 143 for SIGTERM)."""
+    return 128 + int(signum)
 
 
 def prepare_output(out_dir: str | Path, overwrite: bool = False, keep: str | Path | None = None) -> Path:
@@ -164,6 +171,21 @@ def check_before_frames(source, resolved: ResolvedConfig, replay_dir, all_frames
         check_salad_weights(resolved.config.retrieval.salad_weights)
 
 
+def say_cpu_cost(resolved: ResolvedConfig, source_frames: int | None, stream=sys.stderr) -> None:
+    """With a model on the CPU, one line with the expected seconds per submap and for the whole source,
+    and the faster models (``sl4slam.frontend.cost``); nothing on a GPU or without a model."""
+    if resolved.device != "cpu" or resolved.frontend.cpu_work is None:
+        return
+    from .frontend.cost import estimate, matmul_rate
+    from .registry import frontend_entries
+
+    submap = resolved.config.submap
+    others = [(entry.name, entry.cpu_work) for entry in frontend_entries() if entry.cpu_work is not None]
+    found = estimate(resolved.frontend.name, resolved.frontend.cpu_work, submap.size + submap.overlap, matmul_rate(),
+                     source_frames, submap.size, others)
+    print(f"sl4slam: {found.line()} (--quiet hides this line)", file=stream, flush=True)
+
+
 def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig, replay_dir, progress: bool, on_submap,
          view, all_frames: bool, keep_viewer: bool) -> dict:
     from .compose import build_stages
@@ -173,6 +195,8 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
     config = resolved.config
     try:
         check_before_frames(source, resolved, replay_dir, all_frames, live)
+        if progress and replay_dir is None:
+            say_cpu_cost(resolved, None if live else len(source))
         cache_dir = out / "frontend_cache" if config.output.cache_frontend else None
         stages = build_stages(resolved, replay_dir=replay_dir, cache_dir=cache_dir)
         stages.frontend.prepare()
@@ -205,17 +229,18 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
         source.keyframe_counter = lambda: pipeline.selector.num_keyframes
     status, stop_reason = "complete", None
     start = time.perf_counter()
-    with _stop_on_signals(pipeline):
+    with _stop_on_signals(pipeline) as stopper:
         try:
             pipeline.consume(source, progress=progress and not live)
         except UserError as exc:  # a stage's own problem (a frontend that keeps failing, a cache that does not match)
             status, stop_reason = "failed", str(exc)
         except KeyboardInterrupt:
             pipeline.stop_requested = True
+            stopper.signum = stopper.signum or signal.SIGINT
     finished = len({k.submap_id for k in pipeline.keyframes})
     if pipeline.stop_requested and status == "complete":
         status, stop_reason = "interrupted", f"interrupted after {finished} finished submap(s)"
-    exit_code = 130 if status == "interrupted" else 1
+    exit_code = signal_exit_code(stopper.signum or signal.SIGINT) if status == "interrupted" else 1
     if not pipeline.keyframes:
         raise RunInterrupted(f"{stop_reason or 'no keyframes'}; nothing was finished, so nothing was written to {out}",
                              exit_code)
@@ -269,16 +294,19 @@ def _localize_all_frames(source, result, frontend, out_dir: Path, settings, prog
 class _stop_on_signals:
     """SIGINT / SIGTERM set ``pipeline.stop_requested`` (the run ends after the current submap);
     a second SIGINT raises KeyboardInterrupt at once. Only in the main thread, where Python
-    delivers signals; elsewhere the handlers stay as they are."""
+    delivers signals; elsewhere the handlers stay as they are. ``signum`` is the first signal
+    received (``None`` while there is none)."""
 
     def __init__(self, pipeline) -> None:
         self.pipeline = pipeline
         self.previous: dict = {}
+        self.signum: int | None = None
 
     def _handle(self, signum, frame) -> None:
         if self.pipeline.stop_requested and signum == signal.SIGINT:
             raise KeyboardInterrupt
         self.pipeline.stop_requested = True
+        self.signum = self.signum or signum
         print(f"\nsl4slam: {signal.Signals(signum).name} received; finishing the current submap "
               "(Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
 
@@ -343,10 +371,17 @@ def print_summary(summary: dict, out_dir: Path, stream=sys.stdout) -> None:
 
 
 def format_length(metres: float) -> str:
-    """A length with the unit that shows its first digits: "0.0312 m", "4.21 mm", "9.03 µm"."""
+    """A length with the unit that shows its first digits: "0.0312 m", "4.21 mm", "9.03 µm",
+    "1.4 nm"; "0 m" for zero and "< 1 nm" below a nanometre (rounding noise, not a length)."""
     size = abs(metres)
-    if size >= 0.01 or size == 0:
+    if size == 0:
+        return "0 m"
+    if size >= 0.01:
         return f"{metres:.4f} m"
     if size >= 1e-5:
         return f"{metres * 1e3:.3g} mm"
-    return f"{metres * 1e6:.3g} µm"
+    if size >= 1e-8:
+        return f"{metres * 1e6:.3g} µm"
+    if size >= 1e-9:
+        return f"{metres * 1e9:.2g} nm"
+    return "< 1 nm"

@@ -381,6 +381,19 @@ def _import_pipeline() -> None:
     from . import metrics  # noqa: F401
 
 
+def frontend_kind(task: RunTask) -> str:
+    """Where a run's frontend outputs come from, in words for its result and the report: "replay"
+    (an earlier recording), "recorded" (computed now and recorded), "simulated (profile P)" (the
+    simulated frontend with its error profile) or "model" (a network)."""
+    if task.replay_dir:
+        return "replay"
+    if task.record_to:
+        return "recorded"
+    if task.config.get("frontend") == "simulated":
+        return f"simulated (profile {task.config.get('sim', {}).get('profile', '?')})"
+    return "model"
+
+
 def run_one(task: RunTask) -> dict:
     """Run SLAM once and measure it; never raises (a failure is a result with its reason).
 
@@ -400,7 +413,7 @@ def run_one(task: RunTask) -> dict:
     result: dict[str, Any] = {
         "point": task.point, "sequence": task.sequence.name, "run": task.run, "seed": task.run,
         "status": "failed", "reason": None, "metrics": {}, "counts": {}, "seconds": {},
-        "frontend": "replay" if task.replay_dir else ("recorded" if task.record_to else "model"),
+        "frontend": frontend_kind(task),
         "frontend_cache": task.replay_dir, "fingerprint": task.fingerprint, "run_dir": str(run_dir),
     }
     start = time.perf_counter()

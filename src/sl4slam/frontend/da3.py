@@ -209,7 +209,12 @@ def registry_entry(size: str):
         description=(f"Depth Anything 3 {release.size.upper()} (Lin et al., 2025): depth, rays and cameras of every "
                      "frame; takes a known calibration"),
         weights=WEIGHTS_SOURCES[release.size], licence=licence, parameters=parameter_counts()[release.size],
-        recognizes=_recognizer(release.architecture), convert=_converter(release.size))
+        recognizes=_recognizer(release.architecture), convert=_converter(release.size),
+        cpu_work=CPU_WORK[release.architecture])
+
+
+CPU_WORK = {"small": 279.0, "base": 658.0, "large": 1962.0, "giant": 5107.0}
+"""GFLOP-equivalents per frame on a CPU, float32 (``sl4slam.frontend.cost``; docs/decisions/cpu-estimate.md)."""
 
 
 def _converter(size: str):

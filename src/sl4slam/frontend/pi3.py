@@ -270,4 +270,9 @@ def registry_entry(variant: str):
                    "π³ (Wang et al., 2025): permutation-equivariant local points and cameras of every frame")
     return FrontendEntry(name=variant, build=build, capabilities=CAPABILITIES[variant], description=description,
                          weights=WEIGHTS_SOURCES[variant], licence="CC BY-NC 4.0 (non-commercial)",
-                         parameters=PARAMETERS[variant], recognizes=recognizes, convert=convert)
+                         parameters=PARAMETERS[variant], recognizes=recognizes, convert=convert,
+                         cpu_work=CPU_WORK[variant])
+
+
+CPU_WORK = {"pi3": 4374.0, "pi3x": 4374.0}
+"""GFLOP-equivalents per frame on a CPU, float32 (``sl4slam.frontend.cost``; docs/decisions/cpu-estimate.md)."""

@@ -241,7 +241,7 @@ def registry_entry() -> FrontendEntry:
         weights=VGGT_WEIGHTS,
         licence="CC BY-NC 4.0 (facebook/VGGT-1B; facebook/VGGT-1B-Commercial is under the VGGT License, commercial use allowed)",
         parameters=VGGT_PARAMETERS, recognizes=lambda keys: "aggregator.camera_token" in keys,
-        convert=_convert)
+        convert=_convert, cpu_work=CPU_WORK)
 
 
 def _convert(src: str, dst: str, dtype: str):
@@ -251,5 +251,8 @@ def _convert(src: str, dst: str, dtype: str):
 
 
 VGGT_PARAMETERS = 1_190_596_120
+
+CPU_WORK = 6800.0
+"""GFLOP-equivalents per frame on a CPU, float32 (``sl4slam.frontend.cost``; docs/decisions/cpu-estimate.md)."""
 """Parameters of the VGGT-1B we build: the checkpoint's 1,256,537,516 without the tracking head's
 65,941,396 (``tests/test_vggt_model.py`` counts them)."""

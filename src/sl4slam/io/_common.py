@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import re
+import sys
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -34,6 +37,30 @@ def natural_key(path: Path) -> tuple:
     if not numbers:
         return (1, 0.0, path.name)
     return (0, float(numbers[-1]), path.name)
+
+
+@contextlib.contextmanager
+def native_stderr_silenced() -> Iterator[None]:
+    """Within the block, what native libraries write to the process's stderr (file descriptor 2) is
+    dropped: FFmpeg's "moov atom not found" and OpenCV's warnings while a video is probed, which the
+    source reports itself in one line. Python's own ``sys.stderr`` is flushed first; when the
+    descriptor cannot be duplicated nothing is redirected."""
+    try:
+        sys.stderr.flush()
+    except (AttributeError, OSError, ValueError):
+        pass
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def is_truncated(data: bytes) -> bool:

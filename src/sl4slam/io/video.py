@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from sl4slam.errors import UserError
-from sl4slam.io._common import check_stride, logger
+from sl4slam.io._common import check_stride, logger, native_stderr_silenced
 from sl4slam.types import Frame
 
 DEFAULT_FPS = 30.0
@@ -44,26 +44,28 @@ class VideoSource:
         self.skipped: list[str] = []
         self.has_ground_truth = False
         self.K = None if K is None else np.asarray(K, np.float64).reshape(3, 3)
-        capture = self._open()
-        try:
-            ok, first = capture.read()
-            if not ok or first is None:
-                raise UserError(f"video {path} contains no decodable frames; re-encode it (e.g. H.264 mp4) or check the file")
-            fps = capture.get(cv2.CAP_PROP_FPS)
-            self.fps = float(fps) if fps and math.isfinite(fps) and fps > 0 else DEFAULT_FPS
-            raw_count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-            if raw_count <= 0:
-                raw_count = 1
-                while capture.grab():
-                    raw_count += 1
-        finally:
-            capture.release()
+        with native_stderr_silenced():  # a broken file is reported below in one line, not in FFmpeg's words
+            capture = self._open()
+            try:
+                ok, first = capture.read()
+                fps = capture.get(cv2.CAP_PROP_FPS)
+                raw_count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+                if ok and first is not None and raw_count <= 0:
+                    raw_count = 1
+                    while capture.grab():
+                        raw_count += 1
+            finally:
+                capture.release()
+        if not ok or first is None:
+            raise UserError(f"video {path} contains no decodable frames; re-encode it (e.g. H.264 mp4) or check the file")
+        self.fps = float(fps) if fps and math.isfinite(fps) and fps > 0 else DEFAULT_FPS
         self.raw_frame_count = raw_count
         count = math.ceil(raw_count / self.stride)
         self._len = min(count, int(max_frames)) if max_frames else count
 
     def _open(self) -> cv2.VideoCapture:
-        capture = cv2.VideoCapture(str(self.path))
+        with native_stderr_silenced():  # FFmpeg's messages about the container; a failure is one line below
+            capture = cv2.VideoCapture(str(self.path))
         if not capture.isOpened():
             capture.release()
             raise UserError(f"cannot open video {self.path}: OpenCV does not recognise it; check the file or convert it to mp4")

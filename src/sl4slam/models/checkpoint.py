@@ -13,6 +13,10 @@ file's header and its last bytes):
 
 ``.pt`` files are read with ``torch.load(weights_only=True)``: tensors and plain containers only,
 never code; a file that holds other pickled objects is refused with the way to convert it.
+
+The fix in a message ends in how to hand a good copy back: ``pass it with --weights PATH`` for a
+run, or what the command that reads the file sets with :func:`weights_passed_as` (``sl4slam
+convert`` takes the path as an argument, not a flag).
 """
 
 from __future__ import annotations
@@ -22,8 +26,10 @@ import os
 import pickle
 import struct
 import zipfile
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 from ..errors import UserError
 
@@ -35,6 +41,31 @@ _PICKLE_PROTOCOL = 0x80
 
 class WeightsFileError(UserError):
     """A weights file exists but cannot be used (truncated, corrupt, another model's, unreadable)."""
+
+
+_PASSED_AS: ContextVar[str | None] = ContextVar("sl4slam_weights_passed_as", default=None)
+
+
+def pass_again(flag: str = "--weights", it: str = "it", value: str = "PATH", default: str | None = None) -> str:
+    """How the user hands weights to the command that needs them, for the end of a fix: "pass
+    {it} with {flag} {value}" ("pass it with --weights PATH"), or the words set by the enclosing
+    :func:`weights_passed_as` with ``it`` filled in. ``default``, the model's hub id, is named as
+    the flag's default, or as what can be passed instead."""
+    how = _PASSED_AS.get()
+    if how is None:
+        return f"pass {it} with {flag} {value}".rstrip() + (f" (default {default})" if default else "")
+    return how.format(it=it) + (f" (or its hub id, {default})" if default else "")
+
+
+@contextmanager
+def weights_passed_as(how: str) -> Iterator[None]:
+    """Within the block, weights messages end their fix with ``how``, its ``{it}`` filled in (e.g.
+    "pass {it} to sl4slam convert"), in place of a flag: for a command that takes weights another way."""
+    token = _PASSED_AS.set(how)
+    try:
+        yield
+    finally:
+        _PASSED_AS.reset(token)
 
 
 def fetch_command(repo_id: str, filename: str) -> str:

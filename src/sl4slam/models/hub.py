@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import MissingWeightsError
-from .checkpoint import check_weights_file, fetch_command
+from .checkpoint import check_weights_file, fetch_command, pass_again
 
 _LOCAL_SUFFIXES = (".pt", ".pth", ".bin", ".ckpt", ".safetensors")
 
@@ -42,12 +42,12 @@ class WeightsSource:
         """How to get the file on a machine with internet access and pass it here."""
         repo_id, filename = repo_id or self.repo_id, filename or self.filename
         return (f"download https://huggingface.co/{repo_id}/resolve/main/{filename} on a machine with internet access "
-                f"(or run {fetch_command(repo_id, filename)} there) and pass the file with {self.flag} PATH")
+                f"(or run {fetch_command(repo_id, filename)} there) and {pass_again(self.flag)}")
 
     def refetch(self, repo_id: str | None = None, filename: str | None = None) -> str:
         """The fix for a broken local copy: delete it and fetch it again."""
         return (f"delete it and fetch it again ({fetch_command(repo_id or self.repo_id, filename or self.filename)}), "
-                f"then pass it with {self.flag} PATH")
+                f"then {pass_again(self.flag)}")
 
 
 VGGT_WEIGHTS = WeightsSource("VGGT", "facebook/VGGT-1B", "model.pt")

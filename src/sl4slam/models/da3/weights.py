@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 
 from ...errors import UserError
-from ..checkpoint import describe_checkpoint
+from ..checkpoint import describe_checkpoint, pass_again
 from ..checkpoint import read_checkpoint as read_weights_file
 from ..hub import WeightsSource, hub_offline, hub_reachable, is_hub_id, resolve_weights
 from .backbone import swiglu_hidden_features
@@ -92,8 +92,10 @@ def require_da3(state_dict: dict, path: str | Path, release: ReleasedSize | None
     """``UserError`` (one line naming the file and what it holds) unless ``state_dict`` (prefix-free) is
     a Depth Anything 3 any-view checkpoint, of ``release``'s architecture when given."""
     wanted = f"{release.repo_id.split('/')[1]} weights" if release else "Depth Anything 3 any-view weights"
-    hint = f"pass {release.name}'s checkpoint with --weights (default {release.repo_id})" if release else \
-        "pass a DA3-SMALL/BASE/LARGE/GIANT checkpoint with --weights"
+    if release is not None:
+        hint = pass_again(it=f"the {release.name} checkpoint", value="", default=release.repo_id)
+    else:
+        hint = pass_again(it="a DA3-SMALL/BASE/LARGE/GIANT checkpoint", value="")
     holds = describe(state_dict)
     if "backbone.pretrained.camera_token" not in state_dict:
         raise UserError(f"{path} holds {holds}, not {wanted}; {hint}")
@@ -198,7 +200,7 @@ def infer_config(state_dict: dict[str, torch.Tensor], reference: dict | None = N
 def read_checkpoint(path: str | Path, what: str = "Depth Anything 3", fix: str | None = None
                     ) -> tuple[dict[str, torch.Tensor], DA3Config | None]:
     """Prefix-free state dict and embedded :class:`DA3Config` (or ``None``) of a weights file, on CPU."""
-    fix = fix or "delete it and fetch it again, then pass it with --weights PATH"
+    fix = fix or f"delete it and fetch it again, then {pass_again()}"
     state_dict, metadata = read_weights_file(path, what, fix)
     embedded = metadata.get(CONFIG_METADATA_KEY)
     if isinstance(embedded, str):

@@ -26,7 +26,7 @@ from typing import Mapping
 import torch
 
 from ...errors import UserError
-from ..checkpoint import describe_checkpoint, write_checkpoint
+from ..checkpoint import describe_checkpoint, pass_again, write_checkpoint
 from ..checkpoint import read_checkpoint as read_weights_file
 from ..hub import WeightsSource, resolve_weights
 from .model import VARIANTS, Pi3, Pi3Config, Pi3X, build_pi3, parameter_count
@@ -64,10 +64,10 @@ def require_variant(state_dict: Mapping, variant: str, path: str | Path) -> None
     source = WEIGHTS_SOURCES[variant]
     if found is not None:
         raise UserError(f"{path} holds {describe_checkpoint(state_dict)}, not {source.what} weights; "
-                        f"use the {found} variant, or pass {source.what} weights with {source.flag} "
-                        f"(default {source.repo_id})")
-    raise UserError(f"{path} holds {describe_checkpoint(state_dict)}, not {source.what} weights; pass a "
-                    f"{source.what} checkpoint with {source.flag} (default {source.repo_id})")
+                        f"use the {found} variant, or "
+                        f"{pass_again(source.flag, f'{source.what} weights', '', source.repo_id)}")
+    raise UserError(f"{path} holds {describe_checkpoint(state_dict)}, not {source.what} weights; "
+                    f"{pass_again(source.flag, f'a {source.what} checkpoint', '', source.repo_id)}")
 
 
 def read_checkpoint(path: str | Path, variant: str = "pi3") -> tuple[dict[str, torch.Tensor], dict | None]:

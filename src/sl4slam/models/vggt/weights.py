@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from ...errors import UserError
-from ..checkpoint import describe_checkpoint, write_checkpoint
+from ..checkpoint import describe_checkpoint, pass_again, write_checkpoint
 from ..checkpoint import read_checkpoint as read_weights_file
 from ..hub import DEFAULT_HUB_ID, VGGT_WEIGHTS, resolve_weights
 from .model import SKIPPED_PREFIXES, VGGT, VGGTModelConfig
@@ -53,8 +53,8 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict | N
 def require_vggt(state_dict: dict, path: str | Path) -> None:
     """``UserError`` (one line naming the file and what it holds) unless ``state_dict`` is VGGT's."""
     if "aggregator.camera_token" not in state_dict:
-        raise UserError(f"{path} holds {describe_checkpoint(state_dict)}, not VGGT weights; pass a VGGT checkpoint "
-                        f"with --weights (default {DEFAULT_HUB_ID})")
+        raise UserError(f"{path} holds {describe_checkpoint(state_dict)}, not VGGT weights; "
+                        f"{pass_again(it='a VGGT checkpoint', value='', default=DEFAULT_HUB_ID)}")
 
 
 def _block_count(state_dict: dict, prefix: str) -> int:
@@ -74,8 +74,8 @@ def infer_config(state_dict: dict[str, torch.Tensor]) -> VGGTModelConfig:
         grid = math.isqrt(state_dict["aggregator.patch_embed.pos_embed"].shape[1] - 1)
         mlp_hidden = state_dict["aggregator.frame_blocks.0.mlp.fc1.weight"].shape[0]
     except KeyError:
-        raise UserError(f"the weights hold {describe_checkpoint(state_dict)}, not VGGT's; pass a VGGT checkpoint "
-                        f"with --weights (default {DEFAULT_HUB_ID})") from None
+        raise UserError(f"the weights hold {describe_checkpoint(state_dict)}, not VGGT's; "
+                        f"{pass_again(it='a VGGT checkpoint', value='', default=DEFAULT_HUB_ID)}") from None
     num_heads = embed_dim // head_dim
     dense_prefix = "depth_head." if "depth_head.norm.weight" in state_dict else "point_head."
     has_dense = f"{dense_prefix}norm.weight" in state_dict

@@ -1,0 +1,188 @@
+"""The CPU estimate a run prints before it starts: the per-model work it rests on, and how close it comes.
+
+    python benchmarks/bench_cpu_estimate.py calibrate [--models da3-small vggt ...] [--frames 17]
+    python benchmarks/bench_cpu_estimate.py check --source DIR [--models da3-small vggt] [--max-frames 40]
+
+``calibrate``: each model in its own child process, its full-size network with seeded random weights
+(float32, CPU) in its SLAM frontend, reconstructs one window of ``--frames`` random 640x480 frames
+after a two-frame warm-up (as ``bench_models.py``); the machine's float32 matmul speed
+(``sl4slam.frontend.cost.matmul_rate``) is measured in the same process before and after. The
+model's work per frame, in GFLOP-equivalents, is seconds per frame x speed: the number its registry
+entry stores (``FrontendEntry.cpu_work``).
+
+``check``: whole ``sl4slam run`` calls on a real sequence excerpt with random full-size weights written
+to a file (``--weights``), on the CPU: the estimate line the run prints before it starts against the
+frontend seconds per submap it then measures (``summary.json``: the median over the run's submaps).
+
+Results go to ``benchmarks/results/cpu_estimate.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from _report import write_report  # noqa: E402
+from bench_da3 import _date, _frames, machine  # noqa: E402
+from bench_models import build_frontend  # noqa: E402
+
+OUT = HERE / "out" / "cpu_estimate"
+RECORDS = OUT / "records.jsonl"
+
+
+def calibrate_child(name: str, frames: int) -> dict:
+    import numpy as np
+    import torch
+
+    from sl4slam.frontend.cost import matmul_rate
+    from sl4slam.types import Frame
+
+    frontend = build_frontend(name)
+    images = _frames(frames, seed=2)
+    window = [Frame(index=i, timestamp=float(i), rgb=image) for i, image in enumerate(images)]
+    with torch.inference_mode():
+        frontend.reconstruct(window[:2], submap_id=0)  # warm-up: kernels and allocator
+        rate_before = matmul_rate()
+        start = time.perf_counter()
+        prediction = frontend.reconstruct(window, submap_id=1)
+        seconds = time.perf_counter() - start
+        rate_after = matmul_rate()
+    rate = (rate_before + rate_after) / 2
+    assert np.isfinite(prediction.depth).all()
+    return {"kind": "calibrate", "model": name, "frames": frames, "seconds": seconds, "rate": rate,
+            "rates": [rate_before, rate_after], "cpu_work": seconds / frames * rate,
+            "threads": torch.get_num_threads(), "load": os.getloadavg()[0], "date": _date()}
+
+
+def run_child(args: list[str], threads: int, timeout: float) -> dict:
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
+    command = [sys.executable, __file__, *args, "--threads", str(threads)]
+    print("$", " ".join(command[1:]), flush=True)
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"error": f"over {timeout:.0f} s", "args": args}
+    if done.returncode != 0:
+        return {"error": done.stderr.strip().splitlines()[-1][:300], "args": args}
+    record = json.loads(done.stdout.strip().splitlines()[-1])
+    OUT.mkdir(parents=True, exist_ok=True)
+    with open(RECORDS, "a") as log:
+        log.write(json.dumps(record) + "\n")
+    return record
+
+
+def random_weights_file(name: str) -> Path:
+    """The model's full-size network with seeded random weights, saved where ``--weights`` can read it."""
+    import torch
+
+    path = OUT / f"{name}_random.safetensors"
+    if path.exists():
+        return path
+    OUT.mkdir(parents=True, exist_ok=True)
+    frontend = build_frontend(name)
+    model = frontend.model
+    if name == "vggt":
+        from sl4slam.models.vggt.weights import save_checkpoint
+    elif name.startswith("da3-"):
+        from sl4slam.models.da3 import save_checkpoint
+    else:
+        from sl4slam.models.pi3 import save_checkpoint
+    tmp = path.with_suffix(".tmp.safetensors")
+    with torch.no_grad():
+        save_checkpoint({k: v.contiguous() for k, v in model.state_dict().items()}, tmp, model.config)
+    os.replace(tmp, path)
+    return path
+
+
+def check_child(name: str, source: str, max_frames: int) -> dict:
+    weights = random_weights_file(name)
+    out = OUT / f"run_{name}"
+    command = ["sl4slam", "run", source, "--out", str(out), "--overwrite", "--model", name, "--weights", str(weights),
+               "--device", "cpu", "--max-frames", str(max_frames), "--retrieval", "none", "--keyframes", "none"]
+    start = time.perf_counter()
+    done = subprocess.run(command, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    if done.returncode != 0:
+        raise SystemExit(done.stderr[-2000:])
+    line = next((l for l in done.stderr.splitlines() if "on this CPU" in l), "")
+    match = re.search(r"needs about ([\d.]+) (s|min|h) per (\d+)-frame submap", line)
+    unit = {"s": 1, "min": 60, "h": 3600}
+    estimated = float(match.group(1)) * unit[match.group(2)] if match else None
+    summary = json.loads((out / "summary.json").read_text())
+    return {"kind": "check", "model": name, "source": Path(source).name, "max_frames": max_frames,
+            "estimate_line": line, "estimated_s_per_submap": estimated,
+            "measured_s_per_submap": summary["seconds"]["per_submap_median"]["frontend"],
+            "submaps": summary["counts"]["submaps"], "keyframes": summary["counts"]["keyframes"],
+            "wall_s": wall, "load": os.getloadavg()[0], "date": _date()}
+
+
+def report(records: list[dict], threads: int) -> list[str]:
+    latest = {(r.get("kind"), r.get("model")): r for r in records}  # the newest record of each kind and model
+    records = list(latest.values())
+    calibrations = [r for r in records if r.get("kind") == "calibrate"]
+    checks = [r for r in records if r.get("kind") == "check"]
+    lines = ["## The CPU estimate: each model's work, and the estimate against whole runs", "",
+             f"Machine: {machine()}; {threads} torch threads. Random full-size weights, float32.", "",
+             "### Work per frame (`FrontendEntry.cpu_work`)", "",
+             "`python benchmarks/bench_cpu_estimate.py calibrate`: one window of random 640x480 frames after a "
+             "two-frame warm-up; the float32 matmul speed measured in the same process before and after.", "",
+             "| model | frames | seconds | matmul GFLOP/s (before, after) | GFLOP-equivalent per frame | load | date |",
+             "|---|---|---|---|---|---|---|"]
+    for r in calibrations:
+        lines.append(f"| {r['model']} | {r['frames']} | {r['seconds']:.1f} | {r['rates'][0]:.0f}, {r['rates'][1]:.0f} | "
+                     f"{r['cpu_work']:.0f} | {r['load']:.1f} | {r['date']} |")
+    if checks:
+        lines += ["", "### The estimate against whole runs", "",
+                  "`python benchmarks/bench_cpu_estimate.py check`: `sl4slam run` on the excerpt on the CPU; the "
+                  "estimate is the run's own line, printed before the first frame; measured = the median frontend "
+                  "seconds per submap over the run (`summary.json`).", "",
+                  "| model | source | frames | submaps | estimated s per submap | measured s per submap | "
+                  "estimate / measured | load | date |", "|---|---|---|---|---|---|---|---|---|"]
+        for r in checks:
+            measured = r.get("measured_s_per_submap")
+            ratio = f"{r['estimated_s_per_submap'] / measured:.2f}" if measured and r["estimated_s_per_submap"] else ""
+            lines.append(f"| {r['model']} | {r['source']} | {r['max_frames']} | {r['submaps']} | "
+                         f"{r['estimated_s_per_submap']} | {measured:.1f} | {ratio} | {r['load']:.1f} | {r['date']} |"
+                         if measured else f"| {r['model']} | {r['source']} | {r['max_frames']} | {r['submaps']} | "
+                         f"{r['estimated_s_per_submap']} | | | {r['load']:.1f} | {r['date']} |")
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("mode", choices=["calibrate", "check", "report"])
+    parser.add_argument("--models", nargs="+", default=["da3-small", "vggt"])
+    parser.add_argument("--frames", type=int, default=17)
+    parser.add_argument("--source", help="check: a sequence folder (TUM RGB-D)")
+    parser.add_argument("--max-frames", type=int, default=40)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--timeout", type=float, default=3600.0)
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        import torch
+
+        torch.set_num_threads(args.threads)
+        record = (calibrate_child(args.child, args.frames) if args.mode == "calibrate"
+                  else check_child(args.child, args.source, args.max_frames))
+        print(json.dumps(record))
+        return
+    if args.mode != "report":
+        for name in args.models:
+            extra = ["--frames", str(args.frames)] if args.mode == "calibrate" else [
+                "--source", args.source, "--max-frames", str(args.max_frames)]
+            print(json.dumps(run_child([args.mode, "--child", name, *extra], args.threads, args.timeout)))
+    records = [json.loads(line) for line in RECORDS.read_text().splitlines() if line.strip()] if RECORDS.exists() else []
+    write_report(HERE / "results" / "cpu_estimate.md", report(records, args.threads))
+
+
+if __name__ == "__main__":
+    main()
