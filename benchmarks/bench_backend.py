@@ -113,9 +113,10 @@ def final_polish(kind: str, num_submaps: int, seed: int) -> tuple[float, float, 
     params.setRelativeErrorTol(1e-14)
     params.setAbsoluteErrorTol(1e-15)
     params.setMaxIterations(100)
-    batch = gtsam.LevenbergMarquardtOptimizer(backend.graph.factor_graph(), backend.graph._isam.calculateBestEstimate(), params).optimize()
+    batch = gtsam.LevenbergMarquardtOptimizer(backend.graph.factor_graph(), backend.graph.isam_values(), params).optimize()
+    batched = backend.graph.matrices_in(batch)
     change = max(float(np.abs(final[k] - incremental[k]).max()) for k in final)
-    gap = max(float(np.abs(final[k] - backend.graph._from_gtsam(backend.graph._at(batch, backend.graph.key(k)))).max()) for k in final)
+    gap = max(float(np.abs(final[k] - batched[k]).max()) for k in final)
     return seconds, change, gap
 
 

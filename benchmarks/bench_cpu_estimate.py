@@ -80,13 +80,19 @@ def run_child(args: list[str], threads: int, timeout: float) -> dict:
 
 
 def random_weights_file(name: str) -> Path:
-    """The model's full-size network with seeded random weights, saved where ``--weights`` can read it."""
+    """The model's full-size network with seeded random weights, saved where ``--weights`` can read it
+    (VGGT's camera head biased to finite cameras, in bf16: ``bench_gpu_run.random_vggt``; a CPU run
+    computes in float32 whatever the file's precision)."""
     import torch
 
     path = OUT / f"{name}_random.safetensors"
     if path.exists():
         return path
     OUT.mkdir(parents=True, exist_ok=True)
+    if name == "vggt":  # plain random weights decode non-finite intrinsics: every submap would be dropped
+        from bench_gpu_run import random_vggt
+
+        return random_vggt(path, {})
     frontend = build_frontend(name)
     model = frontend.model
     if name == "vggt":

@@ -2,26 +2,50 @@
 
 Two steps, because the GPU machine has no package index:
 
-    python benchmarks/bench_gpu_run.py prepare            # here: GTSAM and evo, TUM fr1/desk -> .gpu/
+    python benchmarks/bench_gpu_run.py prepare            # here: GTSAM, evo, safetensors, TUM fr1/desk -> .gpu/
     python benchmarks/bench_gpu_run.py run --out DIR      # there: installs from .gpu/, runs, reports
+    python benchmarks/bench_gpu_run.py run --dry-run --out DIR   # here: the same, on the CPU, small
 
 ``prepare`` (on a machine with PyPI and the project's data folder ``../shared``) fetches what the GPU
 machine's Python (3.12, x86-64, with torch, numpy, scipy, OpenCV and matplotlib of its own) lacks:
-GTSAM and evo, as one zip of their packages (GTSAM's example data and its unstable module left
-out), and copies TUM RGB-D fr1/desk into the working tree (its RGB frames as JPEG, quality 85, so
-the tree stays within what travels to the GPU machine: 64 MiB). ``.gpu/`` is excluded from git.
+GTSAM, evo and safetensors, as one zip of their packages (GTSAM's example data, tests and unstable
+module left out), and copies TUM RGB-D fr1/desk into the working tree (its RGB frames as JPEG,
+quality 75, so the tree stays within what travels to the GPU machine: 64 MiB, :data:`TRAVEL_LIMIT`).
+``.gpu/`` is excluded from git. The project itself is not installed there: ``run`` puts ``src/`` and
+the unpacked packages on ``PYTHONPATH`` (its own and its child processes').
 
 ``run`` unpacks the zip into ``/tmp/sl4slam-site``, makes VGGT-1B with random weights (full size,
 bf16: the cost of a forward does not depend on the values) and runs in a fresh process each:
 
 - TUM fr1/desk, VGGT bf16, the model overlapping the graph work (the default) and sequential, side
   by side; with ``--all-frames`` as well;
-- the synthetic world (600 frames at 640x480), VGGT bf16, overlapped.
+- TUM fr1/desk, overlapped, within 8 GB: the process capped with
+  ``torch.cuda.set_per_process_memory_fraction`` to 8 GiB and ``--max-memory 8`` (the planner picks
+  the dense heads' chunk);
+- with ``--world-frames N``, the synthetic world (N frames at 640x480, rendered first: about 0.2 s
+  a frame), VGGT bf16, overlapped.
 
 Each run reports input frames and keyframes per second over the whole run and over its last tenth
 (does it slow down as the map grows?), the median seconds per submap of every stage, the latency
 from a keyframe's arrival to its pose (when its submap's graph work ends), GPU peak memory
-(``torch.cuda.max_memory_allocated``) and host peak RSS. Without a GPU it ends with one line.
+(``torch.cuda.max_memory_allocated``) and host peak RSS. Figures go to ``DIR/gpu_run.json`` (after
+each run, so a stopped call keeps the finished ones) and the Markdown section to ``DIR/gpu_run.md``
+(copied into ``benchmarks/results/gpu_run.md``). Without a GPU, ``run`` ends with one line.
+
+``run --dry-run`` goes through the same steps on the CPU: the same unpacking of ``.gpu/site.zip``,
+the same child processes, runs and report, with a small VGGT (:data:`DRY_MODEL`, random weights,
+bf16) on the first :data:`DRY_FRAMES` frames of the staged fr1/desk and a small synthetic world;
+the 8 GB run keeps ``--max-memory 8`` (the cap itself needs a GPU). Proved in a fresh virtual
+environment holding only what the GPU machine has (the project on ``PYTHONPATH``, not installed)::
+
+    ~/.pyenv/versions/3.12.1/bin/python -m venv /tmp/gpuvenv
+    /tmp/gpuvenv/bin/pip install torch==2.13.0 numpy scipy opencv-python-headless matplotlib
+    python benchmarks/bench_gpu_run.py prepare
+    /tmp/gpuvenv/bin/python benchmarks/bench_gpu_run.py run --dry-run --out /tmp/gpu_dry
+
+Outcome (2 CPU cores, shared): the 4 runs finished, exit status 0, in about 6 minutes; staged 37.8
+MiB, 59.5 MiB with the working tree. Section and findings: ``benchmarks/results/gpu_run.md``. On the
+GPU machine: ``python3 benchmarks/bench_gpu_run.py run --out $OUT`` with ``.gpu`` carried.
 """
 
 from __future__ import annotations
@@ -43,14 +67,36 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 STAGE_DIR = REPO / ".gpu"
 SITE = Path("/tmp/sl4slam-site")
-WHEELS = {"gtsam": "gtsam==4.3.0", "evo": "evo==1.38.1"}
+WHEELS = {"gtsam": "gtsam==4.3.0", "evo": "evo==1.38.1", "safetensors": "safetensors==0.8.0"}
+#: Parts of the wheels that nothing of ours reads: GTSAM's example data, tests and unstable module.
+SKIPPED_IN_WHEELS = ("gtsam/Data/", "gtsam/tests/", "gtsam_unstable", "gtsam.libs/libgtsam_unstable")
 GPU_PYTHON = "3.12"
 PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64")
 TRAVEL_LIMIT = 64 * 2**20
 VGGT_SOTA_FPS = 8.4  # VGGT-SLAM 2.0's published speed on an RTX 3090, w = 16 (a different GPU)
+GIB = 2**30
+#: The memory budget of the capped run, GiB (an 8 GB card).
+CAP_GB = 8.0
+#: The dry run's VGGT: the full model's structure (24-layer-deep aggregator replaced by 4), small widths.
+DRY_MODEL = {"embed_dim": 64, "depth": 4, "num_heads": 2, "patch_embed_depth": 2, "patch_embed_num_heads": 2,
+             "camera_trunk_depth": 1, "camera_num_heads": 2, "dpt_features": 16, "dpt_out_channels": [16, 16, 32, 32],
+             "dpt_layers": [0, 1, 2, 3]}
+#: Input frames of fr1/desk the dry run reads, and the size of its synthetic world.
+DRY_FRAMES = 48
+DRY_WORLD = {"frames": 40, "width": 160, "height": 120}
 
 
 # ------------------------------------------------------------------------------------------ prepare
+def travel_bytes(stage_dir: Path = STAGE_DIR, repo: Path = REPO) -> tuple[int, int]:
+    """(bytes staged in ``stage_dir``, bytes of the working tree that travels: tracked and untracked,
+    not ignored, files of ``repo``)."""
+    staged = sum(p.stat().st_size for p in stage_dir.rglob("*") if p.is_file()) if stage_dir.is_dir() else 0
+    listed = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=repo, capture_output=True,
+                            check=True).stdout.decode().split("\0")
+    tree = sum((repo / f).stat().st_size for f in listed if f and (repo / f).is_file())
+    return staged, tree
+
+
 def prepare(shared: Path, quality: int) -> None:
     """Stage the packages and the sequence in ``.gpu/`` (run where PyPI and ``../shared`` are)."""
     import cv2
@@ -72,12 +118,13 @@ def prepare(shared: Path, quality: int) -> None:
         for wheel in sorted(downloads.glob("*.whl")):
             with zipfile.ZipFile(wheel) as source:
                 for name in source.namelist():
-                    if name.startswith(("gtsam/Data/", "gtsam_unstable", "gtsam.libs/libgtsam_unstable")):
-                        continue  # example data and the unstable module: nothing of ours reads them
-                    site.writestr(name, source.read(name))
+                    if not name.startswith(SKIPPED_IN_WHEELS):
+                        site.writestr(name, source.read(name))
     sequence = shared / "data" / "tum_rgbd_fr1_desk"
     target = STAGE_DIR / "tum_rgbd_fr1_desk"
-    (target / "rgb").mkdir(parents=True, exist_ok=True)
+    if target.is_dir():
+        shutil.rmtree(target)  # frames of another quality must not stay
+    (target / "rgb").mkdir(parents=True)
     lines = []
     for line in (sequence / "rgb.txt").read_text().splitlines():
         if line.startswith("#") or not line.strip():
@@ -85,16 +132,12 @@ def prepare(shared: Path, quality: int) -> None:
             continue
         stamp, name = line.split()[:2]
         jpeg = Path(name).with_suffix(".jpg")
-        if not (target / jpeg).is_file():
-            cv2.imwrite(str(target / jpeg), cv2.imread(str(sequence / name)), [cv2.IMWRITE_JPEG_QUALITY, quality])
+        cv2.imwrite(str(target / jpeg), cv2.imread(str(sequence / name)), [cv2.IMWRITE_JPEG_QUALITY, quality])
         lines.append(f"{stamp} {jpeg}")
     (target / "rgb.txt").write_text("\n".join(lines) + "\n")
     shutil.copyfile(sequence / "groundtruth.txt", target / "groundtruth.txt")
     shutil.rmtree(downloads)
-    staged = sum(p.stat().st_size for p in STAGE_DIR.rglob("*") if p.is_file())
-    tracked = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=REPO, capture_output=True,
-                             check=True).stdout.decode().split("\0")
-    tree = sum((REPO / f).stat().st_size for f in tracked if f and (REPO / f).is_file())
+    staged, tree = travel_bytes()
     print(f"staged {staged / 2**20:.1f} MiB in {STAGE_DIR} (packages {(STAGE_DIR / 'site.zip').stat().st_size / 2**20:.1f} MiB); "
           f"with the working tree {(staged + tree) / 2**20:.1f} MiB of the {TRAVEL_LIMIT / 2**20:.0f} MiB that travel")
     if staged + tree > TRAVEL_LIMIT:
@@ -109,40 +152,65 @@ def require_gpu() -> None:
     except ImportError:
         raise SystemExit("bench_gpu_run: torch is not installed; run this on the GPU machine") from None
     if not torch.cuda.is_available():
-        print("bench_gpu_run: no CUDA GPU on this machine; run `prepare` here and `run` on a GPU machine",
-              file=sys.stderr)
+        print("bench_gpu_run: no CUDA GPU on this machine; run `prepare` here and `run` on a GPU machine "
+              "(`run --dry-run` runs it small on the CPU)", file=sys.stderr)
         raise SystemExit(2)
 
 
-def install_site() -> None:
-    """Unpack the staged packages where this process (and the runs it starts) import them."""
-    if not (STAGE_DIR / "site.zip").is_file():
-        raise SystemExit(f"bench_gpu_run: {STAGE_DIR / 'site.zip'} is missing; run `prepare` first and carry .gpu")
-    with zipfile.ZipFile(STAGE_DIR / "site.zip") as site:
-        site.extractall(SITE)
-    os.environ["PYTHONPATH"] = os.pathsep.join([str(SITE), str(REPO / "src"), os.environ.get("PYTHONPATH", "")])
-    sys.path[:0] = [str(SITE), str(REPO / "src")]
+def install_site(archive: Path = STAGE_DIR / "site.zip", site: Path = SITE, source: Path = REPO / "src") -> None:
+    """Unpack the staged packages into ``site`` and put it and the project's ``source`` first on the
+    import path of this process and (through ``PYTHONPATH``) of the processes it starts."""
+    if not archive.is_file():
+        raise SystemExit(f"bench_gpu_run: {archive} is missing; run `prepare` first and carry .gpu")
+    with zipfile.ZipFile(archive) as packages:
+        packages.extractall(site)
+    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(site), str(source), os.environ.get("PYTHONPATH", "")) if p)
+    sys.path[:0] = [str(site), str(source)]
 
 
-def random_vggt(path: Path) -> Path:
-    """VGGT-1B with random weights, saved in bf16 (what the runs load)."""
+def random_vggt(path: Path, model_config: dict) -> Path:
+    """VGGT of ``model_config`` (``{}``: VGGT-1B) with seeded random weights, made on the CPU (as in
+    the dry run) and saved in bf16 (what the runs load) at ``path``; an existing file is reused.
+
+    The camera head's last layer is shrunk and biased towards the identity rotation and a 60-degree
+    field of view: with plain random weights the decoded intrinsics can be non-finite, and the
+    frontend then drops every submap (the run ends with no keyframe).
+    """
     import torch
 
     from sl4slam.models.vggt.model import VGGT, VGGTModelConfig, init_random_weights
     from sl4slam.models.vggt.weights import save_checkpoint
 
     if not path.is_file():
-        with torch.device("cuda"):
-            model = init_random_weights(VGGT(VGGTModelConfig()), seed=0)
-        save_checkpoint({k: v.to(torch.bfloat16) for k, v in model.state_dict().items()}, path, VGGTModelConfig())
-        del model
-        torch.cuda.empty_cache()
+        config = VGGTModelConfig(**model_config)
+        model = init_random_weights(VGGT(config), seed=0)
+        with torch.no_grad():
+            last = model.camera_head.pose_branch.fc2
+            last.weight.mul_(0.01)
+            # translation 0, quaternion (0, 0, 0, 1), field of view 1.05 x 1.3 rad; the head adds its
+            # iterations' outputs, so each gives its share of the target
+            target = torch.tensor([0, 0, 0, 0, 0, 0, 1.0, 1.05, 1.3])
+            last.bias.copy_(target / config.camera_iterations)
+        save_checkpoint({k: v.to(torch.bfloat16).contiguous() for k, v in model.state_dict().items()}, path, config)
     return path
+
+
+def run_specs(tum: Path, max_frames: int, cap_gb: float) -> list[dict]:
+    """The runs on ``tum`` (its first ``max_frames``; 0: all), in order: what each child process is
+    told besides weights, device and output; the capped one within ``cap_gb`` GiB."""
+    base = {"source": str(tum), "overlap": True, "all_frames": False, "max_frames": max_frames,
+            "max_memory_gb": 0.0, "memory_cap_gb": 0.0}
+    return [
+        {**base, "name": "TUM fr1/desk, overlapped"},
+        {**base, "name": "TUM fr1/desk, sequential", "overlap": False},
+        {**base, "name": "TUM fr1/desk, overlapped, --all-frames", "all_frames": True},
+        {**base, "name": f"TUM fr1/desk, overlapped, within {cap_gb:g} GB (--max-memory {cap_gb:g})",
+         "max_memory_gb": cap_gb, "memory_cap_gb": cap_gb},
+    ]
 
 
 def one_run(spec: dict) -> dict:
     """One measured run in this process (``--one`` mode): the figures as a dict."""
-    import numpy as np
     import torch
 
     from sl4slam.config import SLAMConfig
@@ -152,8 +220,16 @@ def one_run(spec: dict) -> dict:
 
     from _timing import TimedSource  # benchmarks/ is on sys.path: the script runs from there
 
-    config = SLAMConfig(frontend="vggt", device="cuda", overlap=spec["overlap"])
+    cuda = spec["device"] == "cuda"
+    capped = cuda and spec["memory_cap_gb"] > 0
+    if capped:
+        total = torch.cuda.get_device_properties(0).total_memory
+        torch.cuda.set_per_process_memory_fraction(min(1.0, spec["memory_cap_gb"] * GIB / total), 0)
+    config = SLAMConfig(frontend="vggt", device=spec["device"], overlap=spec["overlap"])
     config.model.weights, config.model.dtype = spec["weights"], "bf16"
+    config.model.max_memory_gb = spec["max_memory_gb"]
+    config.model.match_layer = min(config.model.match_layer, spec["model_depth"] - 1)
+    config.source.max_frames = spec["max_frames"]
     config.retrieval.kind = "orb"  # SALAD's weights are not here either; ORB needs none
     config.output.keyframes = "none"
     arrivals: dict[int, float] = {}
@@ -166,63 +242,80 @@ def one_run(spec: dict) -> dict:
         finished.append((now, len(arrivals), len(pipeline.keyframes)))
         latencies.extend(now - arrivals[k.frame_index] for k in pipeline.keyframes if k.submap_id == submap_id)
 
-    torch.cuda.reset_peak_memory_stats()
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
     start = time.perf_counter()
     summary = run_slam(source, spec["out"], config, progress=False, overwrite=True, on_submap=on_submap,
                        all_frames=spec["all_frames"])
-    total = time.perf_counter() - start
-    frames, keyframes = len(arrivals), summary["counts"]["keyframes"]
-    tail = finished[int(0.9 * len(finished)) - 1] if len(finished) >= 10 else finished[0]
-    last_seconds = finished[-1][0] - tail[0]
-    per_submap = summary["seconds"]["per_submap_median"]
+    seconds = time.perf_counter() - start
+    return summarize(spec["name"], seconds, len(arrivals), summary, finished, latencies,
+                     torch.cuda.max_memory_allocated() if cuda else None,
+                     resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+                     spec["memory_cap_gb"] if capped else None)
+
+
+def summarize(name: str, seconds: float, frames: int, summary: dict, finished: list[tuple[float, int, int]],
+              latencies: list[float], gpu_peak_bytes: int | None, host_peak_bytes: int,
+              cap_gb: float | None) -> dict:
+    """A run's figures: rates over the whole run and over its last tenth of submaps.
+
+    Args:
+        seconds: the run's wall time; frames: input frames read.
+        summary: ``run_slam``'s summary (``counts``, ``seconds.per_submap_median``).
+        finished: (time, input frames read, keyframes) when each submap's graph work ended.
+        latencies: seconds from each keyframe's arrival to its pose.
+        gpu_peak_bytes: ``torch.cuda.max_memory_allocated`` (``None``: no GPU); host_peak_bytes: peak RSS.
+        cap_gb: the process's GPU memory cap, GiB (``None``: none).
+    """
+    import numpy as np
+
+    keyframes = summary["counts"]["keyframes"]
+    tail = finished[int(0.9 * len(finished)) - 1] if len(finished) >= 10 else finished[0] if finished else None
+    last_seconds = finished[-1][0] - tail[0] if tail else 0.0
     return {
-        "name": spec["name"], "frames": frames, "keyframes": keyframes, "submaps": summary["counts"]["submaps"],
-        "seconds": round(total, 2), "fps": round(frames / total, 2), "keyframes_per_s": round(keyframes / total, 2),
+        "name": name, "frames": frames, "keyframes": keyframes, "submaps": summary["counts"]["submaps"],
+        "seconds": round(seconds, 2), "fps": round(frames / seconds, 2), "keyframes_per_s": round(keyframes / seconds, 2),
         "fps_last_tenth": round((finished[-1][1] - tail[1]) / last_seconds, 2) if last_seconds > 0 else None,
         "keyframes_per_s_last_tenth": round((finished[-1][2] - tail[2]) / last_seconds, 2) if last_seconds > 0 else None,
-        "per_submap_median_s": per_submap,
-        "latency_s": {"median": round(float(np.median(latencies)), 3), "max": round(float(np.max(latencies)), 3)},
-        "gpu_peak_gib": round(torch.cuda.max_memory_allocated() / 2**30, 2),
-        "host_peak_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),
+        "per_submap_median_s": summary["seconds"]["per_submap_median"],
+        "latency_s": {"median": round(float(np.median(latencies)), 3) if latencies else None,
+                      "max": round(float(np.max(latencies)), 3) if latencies else None},
+        "gpu_peak_gib": None if gpu_peak_bytes is None else round(gpu_peak_bytes / GIB, 2),
+        "host_peak_gib": round(host_peak_bytes / GIB, 2),
+        "gpu_cap_gib": cap_gb,
     }
 
 
-def run(out: Path, frames: int) -> None:
-    require_gpu()
-    install_site()
+def child_run(spec: dict, timeout: float) -> dict:
+    """``spec`` run by this script in a fresh process (``--one``): its figures, or ``name`` and ``error``."""
+    try:
+        proc = subprocess.run([sys.executable, __file__, "--one", json.dumps(spec)], capture_output=True, text=True,
+                              env=os.environ, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"name": spec["name"], "error": f"stopped after {timeout:.0f} s"}
+    if proc.returncode != 0:
+        last = (proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"])[-1]
+        return {"name": spec["name"], "error": last.replace("|", "/")[:300]}
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _value(value, form: str = "{}") -> str:
+    return "-" if value is None else form.format(value)
+
+
+def report(rows: list[dict], device: str, model: str, command: str, dry_run: bool) -> list[str]:
+    """The Markdown section of ``rows`` (each a :func:`summarize` dict, or ``name`` and ``error``)."""
     import torch
 
-    out.mkdir(parents=True, exist_ok=True)
-    weights = random_vggt(Path("/tmp/vggt_random_bf16.safetensors"))
-    tum = STAGE_DIR / "tum_rgbd_fr1_desk"
-    from sl4slam.synthetic import write_synthetic_sequence
-
-    world = write_synthetic_sequence(Path("/tmp/sl4slam-world"), num_frames=frames, width=640, height=480, seed=0,
-                                     overwrite=True)
-    specs = [
-        {"name": "TUM fr1/desk, overlapped", "source": str(tum), "overlap": True, "all_frames": False},
-        {"name": "TUM fr1/desk, sequential", "source": str(tum), "overlap": False, "all_frames": False},
-        {"name": "TUM fr1/desk, overlapped, --all-frames", "source": str(tum), "overlap": True, "all_frames": True},
-        {"name": f"synthetic world ({frames} frames, 640x480), overlapped", "source": str(world), "overlap": True,
-         "all_frames": False},
-    ]
-    rows = []
-    for k, spec in enumerate(specs):
-        spec = {**spec, "weights": str(weights), "out": f"/tmp/sl4slam-run-{k}"}
-        proc = subprocess.run([sys.executable, __file__, "--one", json.dumps(spec)], capture_output=True, text=True,
-                              env=os.environ)
-        if proc.returncode != 0:
-            rows.append({"name": spec["name"], "error": proc.stderr.strip().splitlines()[-1:]})
-            continue
-        rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
-    device = torch.cuda.get_device_name(0)
-    (out / "gpu_run.json").write_text(json.dumps({"device": device, "rows": rows}, indent=2))
-    lines = [f"## Whole runs on a GPU ({device})", "",
+    title = (f"## Whole runs on a GPU: the dry run on the CPU ({device})" if dry_run
+             else f"## Whole runs on a GPU ({device})")
+    lines = [title, "",
              f"Date: {datetime.date.today()}; torch {torch.__version__}, Python {platform.python_version()}. "
-             "VGGT-1B, random weights, bf16; ORB retrieval; keyframes not written. Command: "
-             "`python benchmarks/bench_gpu_run.py run --out DIR` (after `prepare` here).", "",
+             f"{model}, random weights, bf16; ORB retrieval; keyframes not written. Command: `{command}`"
+             + (" (after `prepare`)." if not dry_run else " (after `prepare`; the same install, child processes and "
+                "report as on the GPU, small: only the device and the sizes differ)."), "",
              "| run | frames | keyframes | submaps | s | frames/s | keyframes/s | frames/s last tenth | "
-             "frontend s/submap | model-free s/submap | latency median / max s | GPU peak GiB | host peak GiB |",
+             "frontend s/submap | model-free s/submap | latency median / max s | GPU peak GiB (cap) | host peak GiB |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         if "error" in row:
@@ -230,37 +323,85 @@ def run(out: Path, frames: int) -> None:
             continue
         stages = row["per_submap_median_s"]
         model_free = sum(v for k, v in stages.items() if k not in ("frontend", "retrieval_describe"))
+        gpu = _value(row["gpu_peak_gib"]) + (f" ({row['gpu_cap_gib']:g})" if row.get("gpu_cap_gib") else "")
         lines.append(f"| {row['name']} | {row['frames']} | {row['keyframes']} | {row['submaps']} | {row['seconds']} | "
-                     f"{row['fps']} | {row['keyframes_per_s']} | {row['fps_last_tenth']} | {stages.get('frontend', 0):.3f} | "
-                     f"{model_free:.3f} | {row['latency_s']['median']} / {row['latency_s']['max']} | "
-                     f"{row['gpu_peak_gib']} | {row['host_peak_gib']} |")
-    tum_rows = [r for r in rows if r["name"].startswith("TUM fr1/desk, overlapped") and "fps" in r]
-    if tum_rows:
+                     f"{row['fps']} | {row['keyframes_per_s']} | {_value(row['fps_last_tenth'])} | "
+                     f"{stages.get('frontend', 0):.3f} | {model_free:.3f} | "
+                     f"{_value(row['latency_s']['median'])} / {_value(row['latency_s']['max'])} | {gpu} | {row['host_peak_gib']} |")
+    tum_rows = [r for r in rows if r["name"] == "TUM fr1/desk, overlapped" and "fps" in r]
+    if tum_rows and not dry_run:
         lines += ["", f"TUM fr1/desk overlapped: {tum_rows[0]['fps']} frames/s, "
                       f"{tum_rows[0]['fps'] / VGGT_SOTA_FPS:.1f}x VGGT-SLAM 2.0's published {VGGT_SOTA_FPS} on an RTX 3090 "
                       f"(different GPUs); target >= 30 (the sequence's 30 Hz)."]
+    failed = [r["name"] for r in rows if "error" in r]
+    if dry_run:
+        lines += ["", f"{len(rows) - len(failed)} of {len(rows)} runs finished"
+                      + (f"; failed: {', '.join(failed)}." if failed else ".")]
+    return lines
+
+
+def run(out: Path, frames: int, dry_run: bool, timeout: float) -> int:
+    """The runs and their report in ``out``; returns the number of runs that failed."""
+    if not dry_run:
+        require_gpu()
+    install_site()
+    import torch
+
+    out.mkdir(parents=True, exist_ok=True)
+    device = "cpu" if dry_run else "cuda"
+    model_config = DRY_MODEL if dry_run else {}
+    work = Path(f"/tmp/sl4slam-{'dry' if dry_run else 'gpu'}")
+    work.mkdir(exist_ok=True)
+    weights = random_vggt(work / "vggt_random_bf16.safetensors", model_config)
+    from sl4slam.models.vggt.model import VGGTModelConfig
+    from sl4slam.synthetic import write_synthetic_sequence
+
+    specs = run_specs(STAGE_DIR / "tum_rgbd_fr1_desk", DRY_FRAMES if dry_run else 0, CAP_GB)
+    if frames > 0:  # the synthetic world: rendered here, before the runs (about 0.2 s a frame on one core)
+        size = DRY_WORLD if dry_run else {"frames": frames, "width": 640, "height": 480}
+        world = write_synthetic_sequence(work / "world", num_frames=size["frames"], width=size["width"],
+                                         height=size["height"], seed=0, overwrite=True)
+        specs.append({**specs[0], "name": f"synthetic world ({size['frames']} frames, {size['width']}x{size['height']}), "
+                      "overlapped", "source": str(world), "max_frames": 0})
+    depth = VGGTModelConfig(**model_config).depth
+    rows = []
+    name = "CPU" if dry_run else torch.cuda.get_device_name(0)
+    for k, spec in enumerate(specs):
+        spec = {**spec, "weights": str(weights), "out": str(work / f"run-{k}"), "device": device, "model_depth": depth}
+        started = time.perf_counter()
+        rows.append(child_run(spec, timeout))
+        print(f"bench_gpu_run: {spec['name']}: {rows[-1].get('error') or 'done'} "
+              f"({time.perf_counter() - started:.0f} s)", flush=True)
+        (out / "gpu_run.json").write_text(json.dumps({"device": name, "dry_run": dry_run, "rows": rows}, indent=2))
+    model = "a small VGGT (bench_gpu_run.DRY_MODEL)" if dry_run else "VGGT-1B"
+    command = "python benchmarks/bench_gpu_run.py run " + ("--dry-run " if dry_run else "") + "--out DIR"
+    lines = report(rows, name, model, command, dry_run)
     (out / "gpu_run.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+    return sum("error" in r for r in rows)
 
 
 def main() -> None:
     if len(sys.argv) == 3 and sys.argv[1] == "--one":  # a child run: its figures as the last line
-        install_site()
         print(json.dumps(one_run(json.loads(sys.argv[2]))))
         return
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     verbs = parser.add_subparsers(dest="verb", required=True)
     staging = verbs.add_parser("prepare", help="stage packages and TUM fr1/desk in .gpu/ (here)")
     staging.add_argument("--shared", type=Path, default=REPO.parent / "shared", help="the project's data folder")
-    staging.add_argument("--jpeg-quality", type=int, default=85)
+    staging.add_argument("--jpeg-quality", type=int, default=75)
     running = verbs.add_parser("run", help="the runs (on the GPU machine)")
     running.add_argument("--out", type=Path, required=True)
-    running.add_argument("--world-frames", type=int, default=600)
+    running.add_argument("--world-frames", type=int, default=0,
+                         help="also run the synthetic world of this many frames at 640x480 (0: not)")
+    running.add_argument("--dry-run", action="store_true",
+                         help="the same install, runs and report on the CPU, with a small model and short inputs")
+    running.add_argument("--run-timeout", type=float, default=150.0, help="seconds one run may take")
     args = parser.parse_args()
     if args.verb == "prepare":
         prepare(args.shared, args.jpeg_quality)
     else:
-        run(args.out, args.world_frames)
+        raise SystemExit(1 if run(args.out, args.world_frames, args.dry_run, args.run_timeout) else 0)
 
 
 if __name__ == "__main__":

@@ -53,7 +53,6 @@ from sl4slam.io import open_source  # noqa: E402
 from sl4slam.result.outputs import compute_ate, peak_memory  # noqa: E402
 from sl4slam.pipeline import SLAMPipeline  # noqa: E402
 from sl4slam.synthetic import write_synthetic_sequence  # noqa: E402
-from sl4slam.types import Frame  # noqa: E402
 
 from _report import write_report  # noqa: E402 (benchmarks/ is on sys.path: the scripts run from there)
 
@@ -179,17 +178,15 @@ def lap_replay(world: Path, config: SLAMConfig,
     frames = {i: base.get(i) for i in range(len(base))}  # decoded once: the replay does not time PNG decoding
     base.get = frames.__getitem__  # type: ignore[method-assign]
     source = LapSource(base, laps=100_000)
+    config.overlap = False  # one submap after the other: each submap done when its frame is fed
     pipeline = SLAMPipeline(config)
-    pipeline._source = source
+    pipeline.start(source, progress=False)
     if prepare is not None:
         prepare(pipeline)
-    pending: list[Frame] = []
     for frame in source:
-        if pipeline._select(frame):
-            pending.append(frame)
-        if len(pending) == config.submap.size:
-            pipeline.process_submap(pending)
-            pending = []
+        before = pipeline.num_submaps
+        pipeline.feed(frame)
+        if pipeline.num_submaps > before:
             yield pipeline
 
 
@@ -258,9 +255,9 @@ def cost_child(work: Path, graph: str, profile: str, submaps: int) -> dict:
     polish = time.perf_counter() - start
 
     def window(pipeline: SLAMPipeline) -> dict:
-        per = pipeline.submap_seconds[-WINDOW:]
+        per = pipeline.ledger.submap_seconds[-WINDOW:]
         return {"backend": [s.get("backend", 0.0) for s in per], "loops": [s.get("loops", 0.0) for s in per],
-                "closed": list(pipeline.submap_loops[-WINDOW:])}
+                "closed": list(pipeline.ledger.submap_loops[-WINDOW:])}
 
     nodes = getattr(late.backend, "num_nodes", late.backend.num_submaps)
     return {"early": window(early), "late": window(late), "nodes": nodes, "keyframes": len(late.keyframes),

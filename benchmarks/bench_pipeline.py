@@ -43,6 +43,10 @@ class LapSource:
         self.name = f"{base.name} x{laps} laps"
         self.skipped: list[str] = []
 
+    @property
+    def has_ground_truth(self) -> bool:
+        return self.base.has_ground_truth
+
     def __len__(self) -> int:
         return len(self.base) * self.laps
 
@@ -78,30 +82,29 @@ def main() -> None:
     config.sim.distort_first_submap = False
     config.backend.graph = "submap"  # the graph the recorded figures were measured on
     config.submap.overlap = args.overlap  # ... with one shared frame (the frames per forward set the cost)
+    config.overlap = False  # one submap after the other: each submap's stages timed on their own
     source = LapSource(base, laps=10_000)
     pipeline = SLAMPipeline(config)
-    keyframe_seconds: list[float] = []
-    pipeline._source = source
-    pending: list[Frame] = []
+    keyframe_seconds: list[float] = []  # frames whose feed ran no submap: keyframe selection
+    pipeline.start(source, progress=False)
     start = time.perf_counter()
     for frame in source:
+        before = pipeline.num_submaps
         t0 = time.perf_counter()
-        is_keyframe = pipeline.selector.is_keyframe(frame.rgb)
-        keyframe_seconds.append(time.perf_counter() - t0)
-        if is_keyframe:
-            pending.append(frame)
-        if len(pending) == config.submap.size:
-            pipeline.process_submap(pending)
-            pending = []
-            done = pipeline.num_submaps
-            if done % 10 == 0:
-                print(f"submap {done}: {time.perf_counter() - start:.0f} s, loops {pipeline.num_loops}", flush=True)
-            if done >= args.submaps:
-                break
+        pipeline.feed(frame)
+        if pipeline.num_submaps == before:
+            keyframe_seconds.append(time.perf_counter() - t0)
+            continue
+        done = pipeline.num_submaps
+        if done % 10 == 0:
+            print(f"submap {done}: {time.perf_counter() - start:.0f} s, loops {pipeline.num_loops}", flush=True)
+        if done >= args.submaps:
+            break
+    pipeline.stop_requested = True  # the keyframes still waiting make no last submap
     t0 = time.perf_counter()
-    pipeline.result()  # once per run: final graph polish and every keyframe's pose
+    pipeline.finish()  # once per run: final graph polish and every keyframe's pose
     result_seconds = time.perf_counter() - t0
-    per_submap = pipeline.submap_seconds
+    per_submap = pipeline.ledger.submap_seconds
     totals = np.array([sum(s.get(k, 0.0) for k in STAGES) for s in per_submap])
     early, late = slice(10, 20), slice(len(per_submap) - 10, len(per_submap))
     middle = slice(len(per_submap) // 2 - 5, len(per_submap) // 2 + 5)
@@ -114,7 +117,7 @@ def main() -> None:
         values = [s.get(stage, 0.0) for s in per_submap]
         rows.append(f"| {stage} | {med(values, early):.1f} | {med(values, middle):.1f} | {med(values, late):.1f} |")
     # cost of the submaps that closed no loop: what every submap pays, loops or not
-    odometry_only = np.array([n == 0 for n in pipeline.submap_loops])
+    odometry_only = np.array([n == 0 for n in pipeline.ledger.submap_loops])
     plain = np.flatnonzero(odometry_only)
     half = len(per_submap) // 2
     plain_early, plain_late = plain[(plain >= 10) & (plain < 40)][:10], plain[-10:]
@@ -122,7 +125,7 @@ def main() -> None:
     plain_row = (f"| total, submaps that closed no loop | {np.median(totals[plain_early]) * 1000:.1f} | "
                  f"{np.median(totals[plain_middle]) * 1000:.1f} | "
                  f"{np.median(totals[plain_late]) * 1000:.1f} |") if len(plain_early) and len(plain_late) else ""
-    loop_backend = [s.get("backend", 0.0) * 1000 for s, n in zip(per_submap, pipeline.submap_loops) if n]
+    loop_backend = [s.get("backend", 0.0) * 1000 for s, n in zip(per_submap, pipeline.ledger.submap_loops) if n]
     stored = sum(k.nbytes for k in pipeline.keyframes) / len(pipeline.keyframes)
     H, W = pipeline.keyframes[0].shape
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -154,7 +157,7 @@ def main() -> None:
         f"{np.median(loop_backend) if loop_backend else 0:.1f} ms, max {max(loop_backend) if loop_backend else 0:.1f} ms. "
         f"The loops found here reach back to the first lap, so their span grows with the map.",
         "",
-        f"Once per run, `result()` (Gauss-Newton polish of the whole graph, then every keyframe's pose): "
+        f"Once per run, `finish()` (Gauss-Newton polish of the whole graph, then every keyframe's pose): "
         f"{result_seconds * 1000:.0f} ms for {len(per_submap)} submaps.",
         "",
         f"Keyframe selection (runs on every input frame, not per submap): median "

@@ -72,7 +72,7 @@ def run(world: Path, setting: str, graph: str, seed: int) -> dict:
         off = SLAMPipeline(config)
         plain = off.run(open_source(str(world)), progress=False)
     else:
-        plain = pipeline._result(pipeline.backend.world_estimate(final=True))  # the same polished graph, not upgraded
+        plain = pipeline.result_for(pipeline.backend.world_estimate(final=True))  # the same polished graph, not upgraded
     applied = [u for u in upgraded.stats["metric_upgrade"] if u["applied"]]
     outcome = {"with": compute_ate(upgraded).rmse, "without": compute_ate(plain).rmse, "completed": completed,
                "applied": len(applied), "segments": len(upgraded.stats["metric_upgrade"]),

@@ -10,7 +10,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 ORDER = ["robustness", "robustness_defaults", "submap_size", "submap_size_submap", "accuracy", "upgrade_pipeline", "upgrade", "failfast", "pipeline", "pipeline_shortcuts", "ransac", "backend", "evaluation",
          "keyframe_graph", "levers", "authors_v1", "render", "retrieval_orb", "salad", "vggt", "pi3", "da3", "models", "cpu_estimate", "overlap", "gpu_run", "localize", "export",
-         "keyframe_format", "viewer", "test_suite"]
+         "keyframe_format", "viewer", "viewer_open", "test_suite"]
 HEADER = """# Benchmarks
 
 Every figure below was measured by a script in `benchmarks/` (the command is given with each

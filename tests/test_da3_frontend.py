@@ -229,5 +229,5 @@ def test_bad_settings_are_refused(tiny):
     with pytest.raises(UserError, match="dtype"):
         DA3Frontend(dtype="int3", device="cpu")
     frontend = frontend_of(tiny, max_memory_gb=0.5)
-    with pytest.raises(UserError, match="the largest submap that fits is 0 frames"):
+    with pytest.raises(UserError, match="below the smallest budget any setting fits"):
         frontend.reconstruct(tiny[4], 0)

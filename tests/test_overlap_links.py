@@ -21,6 +21,7 @@ from sl4slam.errors import UserError
 from sl4slam.frontend.simulated import SimulatedFrontend
 from sl4slam.geometry import apply_transform, se3_inverse, to_4x4
 from sl4slam.io import open_source
+from sl4slam.keyframe_store import KeyframeStore
 from sl4slam.metrics import ate
 from sl4slam.pipeline import SLAMPipeline
 from sl4slam.submap import confidence_mask, submap_points
@@ -283,9 +284,12 @@ def test_loop_companions_are_the_nearest_keyframes_of_the_loop_frames_submap() -
     stored = [SimpleNamespace(frame_index=f, submap_id=s) for f, s in
               ((0, 0), (4, 0), (9, 0), (15, 1), (18, 1), (30, 1), (31, 2))]
 
+    store = KeyframeStore()
+    for keyframe in stored:
+        store.add(keyframe)
+
     def companions(frame: int, count: int) -> list[int]:
-        owner = SimpleNamespace(keyframes=stored, config=SimpleNamespace(submap=SimpleNamespace(loop_frames=count)))
-        return SLAMPipeline._loop_companions(owner, frame)
+        return store.companions(frame, count - 1)
 
     assert companions(4, 1) == []
     assert companions(4, 2) == [0]  # 4 frames before against 5 after

@@ -207,8 +207,11 @@ def test_pi3x_is_given_the_grid_intrinsics_in_the_authors_convention(fixtures_di
 def test_memory_budget_refuses_what_cannot_fit(fixtures_dir):
     frontend = Pi3Frontend("pi3x", device="cpu", model=_tiny_model(fixtures_dir, "pi3x_tiny"), max_memory_gb=0.02)
     assert frontend.head_chunk(2, 28, 42) >= 1
-    with pytest.raises(UserError, match="the largest submap that fits has"):
+    with pytest.raises(UserError, match="below the smallest budget any setting fits"):  # not even one frame at this size
         frontend.head_chunk(17, 434, 574)
+    roomier = Pi3Frontend("pi3x", device="cpu", model=_tiny_model(fixtures_dir, "pi3x_tiny"), max_memory_gb=0.4)
+    with pytest.raises(UserError, match="the largest submap that fits has"):
+        roomier.head_chunk(400, 434, 574)
 
 
 def test_bad_settings_and_missing_weights(tmp_path, monkeypatch):

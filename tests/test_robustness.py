@@ -85,8 +85,8 @@ def test_a_failing_submap_is_skipped_and_the_run_goes_on(small_world: Path) -> N
     config = small_config()
     _, reference = run(small_world, config)
     pipeline, result = run(small_world, config, FailingFrontend(config.sim, {2}))
-    lost = pipeline.frontend_failures[0]
-    assert [f["submap"] for f in pipeline.frontend_failures] == [2] and "out of memory" in lost["reason"]
+    lost = pipeline.ledger.frontend_failures[0]
+    assert [f["submap"] for f in pipeline.ledger.frontend_failures] == [2] and "out of memory" in lost["reason"]
     assert len(result.keyframes) == len(reference.keyframes) - len(lost["keyframes"])
     assert not set(lost["keyframes"]) & {k.frame_index for k in result.keyframes}
     # the next submap shares the last good keyframe, so the map stays one segment and accurate

@@ -431,8 +431,6 @@ def test_full_model_runs_on_cpu_at_322() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("lightning", [False, True])
 def test_salad_retrieval_end_to_end_with_random_checkpoint(tmp_path, lightning) -> None:
-    from sl4slam.retrieval import make_retrieval
-
     path = write_random_salad_checkpoint(tmp_path / "dino_salad.ckpt", seed=3, lightning=lightning)
     model = load_salad(path, "cpu")
     torch.manual_seed(3)
@@ -440,7 +438,7 @@ def test_salad_retrieval_end_to_end_with_random_checkpoint(tmp_path, lightning) 
     assert all(torch.equal(v, reference[k]) for k, v in model.state_dict().items())
 
     config = RetrievalConfig(kind="salad", salad_weights=str(path), tau_interval=0)
-    retrieval = make_retrieval(config)
+    retrieval = SaladRetrieval(config)
     assert isinstance(retrieval, SaladRetrieval)
     images = random_images(4, seed=13)
     retrieval.add(as_frames([0, 1], images[:2]), 0)

@@ -150,15 +150,15 @@ def test_the_next_forward_runs_while_the_graph_works(world: Path, monkeypatch) -
             return super().reconstruct(frames, submap_id, **kwargs)
 
     pipeline = SLAMPipeline(config, SlowModel(config.sim))
-    finish = pipeline.finish
+    integrate = pipeline.integrate
     overlapped = []
 
-    def waiting_finish(work, prediction):
+    def waiting_integrate(work, prediction):
         if work.submap_id == 1:
             overlapped.append(started.setdefault(2, threading.Event()).wait(timeout=120))
-        return finish(work, prediction)
+        return integrate(work, prediction)
 
-    pipeline.finish = waiting_finish
+    pipeline.integrate = waiting_integrate
     pipeline.run(open_source(str(world)), progress=False)
     assert overlapped == [True]
 

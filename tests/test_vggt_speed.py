@@ -200,5 +200,5 @@ def test_frontend_int8_and_memory_budget():
     roomy = VGGTFrontend(ModelConfig(max_memory_gb=64.0), model=_small_model(), device="cpu")
     assert roomy.head_chunk(3, height, width) == 3
     tight = VGGTFrontend(ModelConfig(max_memory_gb=0.1), model=_small_model(), device="cpu")
-    with pytest.raises(UserError, match="largest submap that fits is 0 frames"):
+    with pytest.raises(UserError, match="below the smallest budget any setting fits"):
         tight.reconstruct(frames, 0)

@@ -15,7 +15,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from browser import HANG_S, chromium_path, drawn_fraction, first_drawn, first_drawn_text, interrupt, launch
+from browser import DRAWN, HANG_S, chromium_path, drawn_fraction, first_drawn, first_drawn_text, interrupt, launch
 from result_folders import write_known_result
 from sl4slam.backend import WorldEstimate
 from sl4slam.errors import UserError
@@ -160,6 +160,7 @@ def test_viewer_defaults_follow_the_map(tmp_path: Path) -> None:
     viewer = view_result(tmp_path / "room", ViewerSettings(port=_free_port(), max_frustums=12), block=False,
                          stream=io.StringIO())
     try:
+        assert viewer.loader.wait(HANG_S) and viewer.loader.complete  # the bound only catches a hang
         spacing = map_spacing(viewer.state.clouds.values())
         assert spacing is not None and viewer._size() == pytest.approx(auto_point_size(spacing, 1.0))
         assert all(h.point_size == pytest.approx(viewer._size()) for h in viewer._clouds.values())
@@ -345,6 +346,177 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _browser_socket(viewer):
+    """A websocket client that the viser server takes for a browser: it connects with viser's
+    protocol and reports a camera (the server counts a client from its first camera message).
+    Returns the open connection once the viewer's connect callbacks have run."""
+    import threading
+
+    import msgspec
+    import viser
+    from viser import _messages
+    from websockets.sync.client import connect
+
+    connected = threading.Event()
+    viewer.server.on_client_connect(lambda _: connected.set())  # runs after the viewer's own callback
+    socket_ = connect(f"ws://127.0.0.1:{viewer.port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None)
+    camera = _messages.ViewerCameraMessage(wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, -1.0), fov=1.0, near=0.01,
+                                           far=100.0, image_height=480, image_width=640, look_at=(0.0, 0.0, 0.0),
+                                           up_direction=(0.0, -1.0, 0.0))
+    socket_.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
+    assert connected.wait(HANG_S)
+    return socket_
+
+
+def test_result_viewer_serves_before_its_map_is_read(tmp_path: Path, monkeypatch) -> None:
+    """`view_result` opens its port before any keyframe array is read, then streams the map in.
+
+    The cloud building is held at each submap (an event per submap): while none is built, the page
+    answers over HTTP and the panel already holds the whole map's point counts, the summary and a
+    "loading" line. Without a browser a built cloud is not sent (a browser opened later gets the
+    scene in the usual order); with one connected, the clouds built so far go out at the next
+    submap, and each further one as it is built. The complete map is the one
+    :func:`~sl4slam.viewer.result.state_from_result` reads, the "loading" line is gone, and the
+    browser whose camera was not moved is given the view that frames the map."""
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    import io
+    import threading
+    import urllib.request
+
+    from sl4slam.viewer import result as result_module
+    from sl4slam.viewer import view_result
+    from sl4slam.viewer.scene import overview
+
+    truth = write_known_result(tmp_path / "r", count=12, width=32, height=24, submap_size=4, version=2,
+                               confidence=True, scene="room")
+    points = sum(int(mask.sum()) for mask in truth["masks"].values())
+    gates = {submap_id: threading.Event() for submap_id in range(3)}
+    held = threading.Event()
+    build = result_module._submap_cloud
+
+    def held_build(submap_id, *args):
+        held.set()
+        assert gates[submap_id].wait(HANG_S)
+        return build(submap_id, *args)
+
+    monkeypatch.setattr(result_module, "_submap_cloud", held_build)
+    out = io.StringIO()
+    viewer = view_result(tmp_path / "r", ViewerSettings(port=_free_port()), block=False, stream=out)
+    browser = None
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{viewer.port}/", timeout=HANG_S) as page:
+            assert page.status == 200 and b"<html" in page.read().lower()
+        assert held.wait(HANG_S)  # the loader waits for the first cloud
+        assert not viewer.loader.finished and viewer.state.clouds == {} and viewer.sent_clouds() == []
+        assert viewer._status.content == "*loading the map: 0 of 3 submaps*"
+        assert viewer.gui_points.content == f"points: {points:,} shown of {points:,}"
+        assert "12 keyframes, 3 submaps" in viewer.gui_summary.content and len(viewer.state.T_world_cam) == 12
+        gates[0].set()
+        assert viewer.loader.wait(HANG_S, submaps=1)
+        assert list(viewer.state.clouds) == [0] and viewer.sent_clouds() == []  # nobody watches: kept back
+        browser = _browser_socket(viewer)
+        gates[1].set()
+        assert viewer.loader.wait(HANG_S, submaps=2)
+        assert viewer.sent_clouds() == [0, 1] and 2 not in viewer.state.clouds
+        assert viewer._status.content == "*loading the map: 2 of 3 submaps*" and viewer._frustums == {}
+        gates[2].set()
+        assert viewer.loader.wait(HANG_S) and viewer.loader.complete and viewer.loader.error is None
+        assert viewer.sent_clouds() == [0, 1, 2] and viewer._status is None and len(viewer._frustums) == 12
+        printed = out.getvalue().splitlines()
+        assert f"viewer at http://127.0.0.1:{viewer.port}" in printed
+        assert printed[-1].startswith(f"loaded 12 keyframes, {points:,} points shown")
+        expected = result_module.state_from_result(load_result(tmp_path / "r"), ViewerSettings())
+        assert list(viewer.state.clouds) == list(expected.clouds)
+        for submap_id, cloud in expected.clouds.items():
+            np.testing.assert_array_equal(viewer.state.clouds[submap_id].offsets, cloud.offsets)
+            np.testing.assert_array_equal(viewer.state.clouds[submap_id].colors, cloud.colors)
+        assert viewer.gui_points.content == f"points: {points:,} shown of {points:,}"
+        client = next(iter(viewer.server.get_clients().values()))
+        np.testing.assert_allclose(client.camera.position, overview(viewer.state)[0])
+    finally:
+        for gate in gates.values():
+            gate.set()
+        if browser is not None:
+            browser.close()
+        viewer.close()
+
+
+def test_closing_the_viewer_while_its_map_loads_stops_the_loader(tmp_path: Path, monkeypatch) -> None:
+    """Closing the viewer while a submap is being built ends the reading at once: nothing more is
+    added or drawn, and no "loaded" line is printed."""
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    import io
+    import threading
+
+    from sl4slam.viewer import result as result_module
+    from sl4slam.viewer import view_result
+
+    write_known_result(tmp_path / "r", count=8, width=32, height=24, submap_size=4)
+    gate, held = threading.Event(), threading.Event()
+    build = result_module._submap_cloud
+
+    def held_build(*args):
+        held.set()
+        assert gate.wait(HANG_S)
+        return build(*args)
+
+    monkeypatch.setattr(result_module, "_submap_cloud", held_build)
+    out = io.StringIO()
+    viewer = view_result(tmp_path / "r", ViewerSettings(port=_free_port()), block=False, stream=out)
+    try:
+        assert held.wait(HANG_S)
+        viewer.close()
+        assert viewer.loader.wait(HANG_S) and not viewer.loader.complete and viewer.loader.error is None
+        assert viewer.state.clouds == {} and "loaded" not in out.getvalue()
+    finally:
+        gate.set()
+        viewer.close()
+
+
+def test_view_serves_at_once_and_sigterm_stops_it_while_the_map_loads(tmp_path: Path) -> None:
+    """`sl4slam view` with the cloud building held until the viewer closes: the URL answers while
+    no cloud is built, and SIGTERM stops the viewer cleanly (exit 0, "viewer stopped", no map)."""
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    import queue
+    import signal
+    import threading
+    import urllib.request
+
+    write_known_result(tmp_path / "r", count=8, width=32, height=24, submap_size=4)
+    port = _free_port()
+    code = ("import sys, threading\n"
+            "from sl4slam.viewer import app, result\n"
+            "from sl4slam.cli import main\n"
+            "closed = threading.Event()\n"
+            "close, build = app.MapViewer.close, result._submap_cloud\n"
+            "def close_first(self):\n    closed.set()\n    close(self)\n"
+            "def held_build(*args):\n    print('building', flush=True)\n    closed.wait()\n    return build(*args)\n"
+            "app.MapViewer.close, result._submap_cloud = close_first, held_build\n"
+            f"sys.exit(main(['view', {str(tmp_path / 'r')!r}, '--port', '{port}']))\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines: queue.Queue = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout] + [lines.put("")], daemon=True).start()
+    seen = []
+    try:
+        while not (any(line.startswith("building") for line in seen)  # two workers may print on one line
+                   and any(line.startswith("viewer at") for line in seen)):
+            seen.append(lines.get(timeout=HANG_S).strip())  # a viewer that serves only after the map: no URL
+            assert seen[-1] or proc.poll() is None, f"viewer exited: {proc.stderr.read()}"
+        url = next(line for line in seen if line.startswith("viewer at")).split()[-1]
+        with urllib.request.urlopen(url, timeout=HANG_S) as page:
+            assert page.status == 200
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=HANG_S)
+        while (line := lines.get(timeout=HANG_S)):
+            seen.append(line.strip())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and "viewer stopped" in seen and not any(line.startswith("loaded") for line in seen), \
+        proc.stderr.read()
+
+
 def _browser(playwright, profile: Path):
     chromium = chromium_path()
     if chromium is None:
@@ -427,6 +599,77 @@ def test_view_in_a_real_browser(tmp_path: Path) -> None:
     assert proc.returncode == 0 and "viewer stopped" in out, err
 
 
+def test_a_damaged_keyframe_file_closes_the_viewer_with_one_line(tmp_path: Path) -> None:
+    """The map is read after the port opens: a keyframe file that cannot be read stops the server,
+    and the error is one line (exit 2), as when the map was read first."""
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    write_known_result(tmp_path / "r", count=6, submap_size=3)
+    damaged = sorted((tmp_path / "r" / "keyframes").glob("*.npz"))[-1]
+    with np.load(damaged) as data:
+        arrays = {name: data[name] for name in data.files if name != "points_world"}
+    np.savez(damaged, **arrays)
+    proc = subprocess.run([sys.executable, "-m", "sl4slam.cli", "view", str(tmp_path / "r"), "--port",
+                           str(_free_port())], capture_output=True, text=True, timeout=HANG_S)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and "viewer stopped" in proc.stdout and "loaded" not in proc.stdout, proc.stderr
+    assert len(lines) == 1 and lines[0].startswith(f"sl4slam: error: keyframe file {damaged}"), proc.stderr
+
+
+def test_view_streams_the_map_into_an_open_browser(tmp_path: Path) -> None:
+    """`sl4slam view` in headless Chromium opened before the map is read: the page shows the control
+    panel with the whole map's counts, the run summary and a "loading" line while the cloud building
+    is held (until the test writes to a FIFO); once released the map is drawn, the "loading" line
+    goes, the view frames the map as it does for a browser opened afterwards, and Ctrl-C stops the
+    viewer (exit 0)."""
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
+    truth = write_known_result(tmp_path / "room", count=16, width=96, height=72, submap_size=4, version=2,
+                               confidence=True, scene="room")
+    points = sum(int(mask.sum()) for mask in truth["masks"].values())
+    release = tmp_path / "release"
+    os.mkfifo(release)
+    code = ("import sys, threading\n"
+            "from sl4slam.viewer import result\n"
+            "from sl4slam.cli import main\n"
+            "lock, released, build = threading.Lock(), threading.Event(), result._submap_cloud\n"
+            "def held_build(*args):\n"
+            "    with lock:\n"
+            "        if not released.is_set():\n"
+            f"            open({str(release)!r}).read()\n"
+            "            released.set()\n"
+            "    return build(*args)\n"
+            "result._submap_cloud = held_build\n"
+            f"sys.exit(main(['view', {str(tmp_path / 'room')!r}, '--port', '{_free_port()}']))\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    released = False
+    try:
+        url = _wait_for_line(proc, "viewer at").split()[-1]
+        with sync_api.sync_playwright() as playwright:
+            browser = _browser(playwright, tmp_path / "profile")
+            page = browser.new_page()
+            page.goto(url)
+            page.get_by_text("loading the map: 0 of 4 submaps", exact=False).first.wait_for()
+            text = page.evaluate("() => document.body.innerText")
+            for item in ("Point size", "Min confidence %", "Colour", "Follow camera",
+                         f"points: {points:,} shown of {points:,}", "16 keyframes, 4 submaps"):
+                assert item in text, f"{item!r} not in the page while the map loads"
+            with open(release, "w") as fifo:
+                fifo.write("go")
+            released = True
+            _wait_for_line(proc, "loaded")
+            page.get_by_text("loading the map", exact=False).first.wait_for(state="detached")
+            assert _wait_until_drawn(page) > DRAWN
+            settled = page.screenshot()  # the view framing the whole map, given at the end of the loading
+            (tmp_path / "settled.png").write_bytes(settled)
+            browser.close()
+        assert drawn_fraction(settled) > MAP_VISIBLE
+    finally:
+        if not released:
+            proc.kill()  # its cloud building waits on the FIFO
+        out, err = interrupt(proc)
+    assert proc.returncode == 0 and "viewer stopped" in out, err
+
+
 def test_live_viewer_follows_a_real_run(tmp_path: Path) -> None:
     """The pipeline's callback feeds a real viser server; the final scene is the polished result."""
     pytest.importorskip("viser", reason="the viewer extra is not installed")
@@ -504,6 +747,7 @@ def test_a_run_without_keyframe_files_shows_its_trajectory(tmp_path: Path) -> No
     out = io.StringIO()
     viewer = view_result(tmp_path / "r", ViewerSettings(port=_free_port()), block=False, stream=out)
     try:
+        assert viewer.loader.wait(HANG_S) and viewer.loader.complete
         assert len(viewer.state.T_world_cam) == 5 and viewer.state.total_points() == 0
         assert "--keyframes compact" in viewer.gui_summary.content
     finally:

@@ -1,10 +1,11 @@
 """The composition root: one function makes a run's stages from its resolved config.
 
-``build_stages`` is the only place that turns names into objects: the frontend (a model, the
-simulator, or a recording replayed, optionally recorded to a cache), the retrieval (with injected
-false loops when asked), the aligner and the graph. The runner, the demo, the evaluation and
-library users all call it, so a run is assembled the same way wherever it starts; a stage given
-explicitly (a test's failing frontend, a benchmark's instrumented graph) replaces the built one.
+``build_stages`` is the only place that turns names into objects, through the catalog
+(``sl4slam.registry``): the frontend (a model, the simulator, or a recording replayed, optionally
+recorded to a cache), the retrieval (with injected false loops when asked), the aligner and the
+graph. The runner, the demo, the evaluation and library users all call it, so a run is assembled
+the same way wherever it starts; a stage given explicitly (a test's failing frontend, a
+benchmark's instrumented graph) replaces the built one.
 """
 
 from __future__ import annotations
@@ -13,11 +14,14 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
-from .alignment import make_aligner
 from .backend import Backend
-from .registry import graph_entry, retrieval_entry
+from .frontend import build_frontend, replay_capabilities
+from .registry import aligner_entry, graph_entry, retrieval_entry
 from .resolve import ResolvedConfig, resolve
-from .types import Aligner, Frontend, FrontendCapabilities, Retrieval
+from .retrieval.false_loops import FalseLoopRetrieval
+from .types import Aligner, Frontend, Retrieval
+
+__all__ = ["Stages", "build_frontend", "build_retrieval", "build_stages", "replay_capabilities", "stages_for"]
 
 _BUILD = object()  # "build this stage from the config" (``None`` is a valid retrieval: no loops)
 
@@ -30,13 +34,6 @@ class Stages:
     retrieval: Retrieval | None
     aligner: Aligner
     backend: Backend
-
-
-def replay_capabilities(replay_dir: str | os.PathLike) -> FrontendCapabilities:
-    """What a recorded frontend cache can give a replay (``resolve(..., capabilities=...)``)."""
-    from .frontend.cache import ReplayFrontend
-
-    return ReplayFrontend(replay_dir).capabilities
 
 
 def build_stages(resolved: ResolvedConfig, frontend: Frontend | None = None, retrieval: Any = _BUILD,
@@ -52,23 +49,20 @@ def build_stages(resolved: ResolvedConfig, frontend: Frontend | None = None, ret
     """
     frontend = build_frontend(resolved, frontend, replay_dir, cache_dir)
     if retrieval is _BUILD:
-        retrieval = retrieval_entry(resolved.retrieval.value).build(resolved)
-    aligner = aligner if aligner is not None else make_aligner(resolved)
+        retrieval = build_retrieval(resolved)
+    aligner = aligner if aligner is not None else aligner_entry(resolved.alignment.value).build(resolved)
     backend = backend if backend is not None else graph_entry(resolved.graph.value).build(resolved)
     return Stages(frontend, retrieval, aligner, backend)
 
 
-def build_frontend(resolved: ResolvedConfig, frontend: Frontend | None = None,
-                   replay_dir: str | os.PathLike | None = None, cache_dir: str | os.PathLike | None = None) -> Frontend:
-    """The run's frontend: ``frontend`` if given, else a replay of ``replay_dir``, else the registered
-    one; recorded to ``cache_dir`` when given."""
-    from .frontend.cache import CachingFrontend, ReplayFrontend
-
-    if frontend is None:
-        frontend = ReplayFrontend(replay_dir) if replay_dir is not None else resolved.frontend.build(resolved)
-    if cache_dir is not None:
-        frontend = CachingFrontend(frontend, cache_dir)
-    return frontend
+def build_retrieval(resolved: ResolvedConfig) -> Retrieval | None:
+    """The retrieval the config names (``None``: no loop closure), wrapped in
+    :class:`~sl4slam.retrieval.false_loops.FalseLoopRetrieval` when ``[false_loops] rate`` is positive."""
+    config = resolved.config
+    retrieval = retrieval_entry(resolved.retrieval.value).build(resolved)
+    if retrieval is not None and config.false_loops.rate > 0:
+        return FalseLoopRetrieval(retrieval, config.false_loops, config.retrieval.tau_interval)
+    return retrieval
 
 
 def stages_for(config, **stages: Any) -> tuple[ResolvedConfig, Stages]:

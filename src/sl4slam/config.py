@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from .errors import UserError
+from .registry import aligner_names, graph_names, retrieval_names
 
 
 class Section:
@@ -164,7 +165,7 @@ class AlignmentConfig(Section):
         "weight_reference_frame": "--alignment-weight-reference-frame",
         "min_inlier_ratio": "--alignment-min-inlier-ratio", "max_condition": "--alignment-max-condition"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
-        "model": ("auto", "sl4", "calibration", "hybrid", "select", "sim3-points", "sim3-cameras"),
+        "model": ("auto", *aligner_names()),
         "planar_model": ("auto", "calibration-scale", "camera-constrained")}
     advanced: ClassVar[frozenset[str]] = frozenset({
         "max_correspondences", "max_points", "max_refit_points", "planarity_threshold", "min_relief", "planar_model",
@@ -351,7 +352,7 @@ class BackendConfig(Section):
     flag_prefix: ClassVar[str] = "backend-"
     flag_names: ClassVar[dict[str, str]] = {"graph": "--graph"}
     choices: ClassVar[dict[str, tuple[str, ...]]] = {
-        "kind": ("sl4", "sim3"), "graph": ("auto", "submap", "keyframe"), "loop_kernel": ("none", "huber", "cauchy"),
+        "kind": ("sl4", "sim3"), "graph": ("auto", *graph_names()), "loop_kernel": ("none", "huber", "cauchy"),
         "weighting": ("auto", "evidence", "fixed")}
     advanced: ClassVar[frozenset[str]] = frozenset({
         "prior_sigma", "loop_kernel", "loop_kernel_width", "effective_points", "min_sigma", "max_sigma",
@@ -488,7 +489,7 @@ class RetrievalConfig(Section):
     section: ClassVar[str] = "retrieval"
     common: ClassVar[frozenset[str]] = frozenset({"kind"})
     flag_names: ClassVar[dict[str, str]] = {"seed": "--retrieval-seed"}
-    choices: ClassVar[dict[str, tuple[str, ...]]] = {"kind": ("auto", "salad", "orb", "none")}
+    choices: ClassVar[dict[str, tuple[str, ...]]] = {"kind": ("auto", *retrieval_names())}
     advanced: ClassVar[frozenset[str]] = frozenset({
         "salad_image_size", "orb_features", "orb_candidates", "orb_ratio", "orb_max_hamming",
         "orb_epipolar_threshold_px", "orb_max_image_side"})

@@ -1,31 +1,37 @@
-"""Named stages: frontends (models and the simulator), retrievals and graph designs.
+"""The catalog of stages a run can name: frontends, retrievals, aligners and graph designs.
 
-Each stage registers under a name with what a run needs to know of it before building it: a
-frontend its capabilities (``sl4slam.types.FrontendCapabilities``), its weights and licence; a
-graph the groups it holds. ``sl4slam.resolve`` reads the entries to settle a config,
-``sl4slam.compose`` calls their ``build`` to make a run's stages. The built-in entries are
-registered by ``sl4slam.frontend``, ``sl4slam.retrieval`` and ``sl4slam.backend`` (one line each);
-a new model adds one line there (docs/architecture.md, "How to add a model").
+Each kind of stage is one table below, a line per name: ``"module:function"`` (or
+``"module:function:argument"`` for one member of a family, e.g. a model size), where ``function``
+(a dotted path inside the module, such as ``Class.registry_entry``) returns the stage's entry. An
+entry says what a run needs to know of the stage before building it (a frontend its capabilities,
+weights and licence; an aligner its group; a graph the groups it holds) and how to ``build`` it
+from a resolved config. The stage's module is imported the first time its entry is asked for, so
+this module imports no stage and naming a model does not import its code (and torch) until a run
+or a listing needs it.
 
-A frontend entry may be registered lazily, as ``"module:function"`` (or ``"module:function:argument"``
-for one member of a family, e.g. a model size) returning the entry, so that naming a model does not
-import its code (and torch) until a run or a listing asks for it.
+``sl4slam.config`` takes the names (the allowed values of ``--alignment``, ``--graph`` and
+``--retrieval``), ``sl4slam.resolve`` reads the entries to settle a config, ``sl4slam.compose``
+calls their ``build`` to make a run's stages. A new stage is its module plus one line in its table
+(docs/architecture.md, "How to add a model", "Add an aligner", "Add a graph"); a program may also
+add one at run time with :func:`register_frontend` (and its siblings), an entry or a reference.
 """
 
 from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping, TypeVar
 
 from .errors import UserError
 from .types import FrontendCapabilities
 
 if TYPE_CHECKING:
-    from .backend import Backend
     from .models.hub import WeightsSource
-    from .resolve import ResolvedConfig
-    from .types import Frontend, Retrieval
+    from .types import Aligner, Frontend, Retrieval
+
+Settled = Any
+"""What ``build`` receives: the run's ``sl4slam.resolve.ResolvedConfig`` (``sl4slam.resolve``
+imports this module, so the type is named here, not imported)."""
 
 
 @dataclass(frozen=True)
@@ -49,7 +55,7 @@ class FrontendEntry:
     """
 
     name: str
-    build: Callable[["ResolvedConfig"], "Frontend"]
+    build: Callable[[Settled], "Frontend"]
     capabilities: FrontendCapabilities
     description: str
     weights: "WeightsSource | None" = None
@@ -63,86 +69,174 @@ class FrontendEntry:
 
 @dataclass(frozen=True)
 class RetrievalEntry:
-    """A loop-closure retrieval (``--retrieval``); ``build`` returns ``None`` for no retrieval."""
+    """A loop-closure retrieval (``--retrieval``); ``build`` returns ``None`` for no retrieval.
+
+    Attributes:
+        uses_device: it runs a model, so the run settles a device for it (``--device``).
+    """
 
     name: str
-    build: Callable[["ResolvedConfig"], "Retrieval | None"]
+    build: Callable[[Settled], "Retrieval | None"]
     description: str
     uses_device: bool = False
 
 
 @dataclass(frozen=True)
-class GraphEntry:
-    """A graph design (``--graph``) and the groups (``--backend``) whose measurements it holds."""
+class AlignerEntry:
+    """An alignment model (``--alignment``): what measures the link between two submaps.
+
+    Attributes:
+        name: its name on the command line ("sl4", "select", ...).
+        build: makes the aligner of a resolved config.
+        description: one line on what it measures.
+        group: the group of its measurements ("sl4" or "sim3"); a graph must hold that group.
+        projective: whether its links may be 15-DOF fits (which leave the map one common projective
+            distortion: the metric upgrade is then on by default).
+    """
 
     name: str
-    build: Callable[["ResolvedConfig"], "Backend"]
+    build: Callable[[Settled], "Aligner"]
+    description: str
+    group: str
+    projective: bool = False
+
+
+@dataclass(frozen=True)
+class GraphEntry:
+    """A graph design (``--graph``) and the groups (``--backend``) whose measurements it holds;
+    ``build`` returns a ``sl4slam.backend.Backend``."""
+
+    name: str
+    build: Callable[[Settled], Any]
     description: str
     groups: tuple[str, ...]
 
 
-_FRONTENDS: dict[str, FrontendEntry | str] = {}
-_RETRIEVALS: dict[str, RetrievalEntry] = {}
-_GRAPHS: dict[str, GraphEntry] = {}
+# The catalog: a line per stage, in the order listings and the command line's choices show them.
+
+_FRONTENDS: dict[str, FrontendEntry | str] = {
+    "vggt": "sl4slam.frontend.vggt:registry_entry",
+    **{f"da3-{size}": f"sl4slam.frontend.da3:registry_entry:{size}"
+       for size in ("small", "base", "large", "large-1.1", "giant", "giant-1.1")},
+    "pi3": "sl4slam.frontend.pi3:registry_entry:pi3",
+    "pi3x": "sl4slam.frontend.pi3:registry_entry:pi3x",
+    "simulated": "sl4slam.frontend.simulated:registry_entry",
+}
+
+_RETRIEVALS: dict[str, RetrievalEntry | str] = {
+    "salad": "sl4slam.retrieval.salad:registry_entry",
+    "orb": "sl4slam.retrieval.orb:registry_entry",
+    "none": "sl4slam.retrieval:none_entry",
+}
+
+_ALIGNERS: dict[str, AlignerEntry | str] = {
+    "sl4": "sl4slam.alignment.aligner:SL4Aligner.registry_entry",
+    "calibration": "sl4slam.alignment.aligner:CalibrationAligner.registry_entry",
+    "hybrid": "sl4slam.alignment.aligner:HybridAligner.registry_entry",
+    "select": "sl4slam.alignment.aligner:SelectAligner.registry_entry",
+    "sim3-points": "sl4slam.alignment.aligner:Sim3PointAligner.registry_entry",
+    "sim3-cameras": "sl4slam.alignment.aligner:Sim3CameraAligner.registry_entry",
+}
+
+_GRAPHS: dict[str, GraphEntry | str] = {
+    "submap": "sl4slam.backend.submap:registry_entry",
+    "keyframe": "sl4slam.backend.keyframe:registry_entry",
+}
+
+Entry = TypeVar("Entry", FrontendEntry, RetrievalEntry, AlignerEntry, GraphEntry)
+
+
+def load_entry(reference: str) -> Any:
+    """The entry a catalog reference returns: ``"module:function"`` or ``"module:function:argument"``,
+    ``function`` a dotted path inside ``module`` (``"pkg.mod:Class.registry_entry"``)."""
+    module, _, function = reference.partition(":")
+    function, _, argument = function.partition(":")
+    factory: Any = importlib.import_module(module)
+    for attribute in function.split("."):
+        factory = getattr(factory, attribute)
+    return factory(argument) if argument else factory()
+
+
+def _entry(table: dict[str, Entry | str], name: str) -> Entry:
+    """The entry of ``name`` in ``table`` (a known name), loaded and kept on first use."""
+    entry = table[name]
+    if isinstance(entry, str):
+        entry = table[name] = load_entry(entry)
+    return entry
+
+
+def _register(table: dict[str, Entry | str], entry: Entry | str, name: str | None) -> None:
+    key = name if isinstance(entry, str) else entry.name
+    if not key:
+        raise ValueError("a stage registered by reference needs its name")
+    table[key] = entry
 
 
 def register_frontend(entry: FrontendEntry | str, name: str | None = None) -> None:
     """Register a frontend: an entry, or (lazily) ``"module:function"`` that returns one, under ``name``."""
-    key = entry.name if isinstance(entry, FrontendEntry) else name
-    if not key:
-        raise ValueError("a lazily registered frontend needs its name")
-    _FRONTENDS[key] = entry
+    _register(_FRONTENDS, entry, name)
 
 
-def register_retrieval(entry: RetrievalEntry) -> None:
-    _RETRIEVALS[entry.name] = entry
+def register_retrieval(entry: RetrievalEntry | str, name: str | None = None) -> None:
+    """Register a retrieval: an entry, or (lazily) ``"module:function"`` that returns one, under ``name``."""
+    _register(_RETRIEVALS, entry, name)
 
 
-def register_graph(entry: GraphEntry) -> None:
-    _GRAPHS[entry.name] = entry
+def register_aligner(entry: AlignerEntry | str, name: str | None = None) -> None:
+    """Register an aligner: an entry, or (lazily) ``"module:function"`` that returns one, under ``name``."""
+    _register(_ALIGNERS, entry, name)
 
 
-def _builtins() -> None:
-    """Import the packages whose import registers the built-in entries (once)."""
-    for module in ("sl4slam.frontend", "sl4slam.retrieval", "sl4slam.backend"):
-        importlib.import_module(module)
+def register_graph(entry: GraphEntry | str, name: str | None = None) -> None:
+    """Register a graph design: an entry, or (lazily) ``"module:function"`` that returns one, under ``name``."""
+    _register(_GRAPHS, entry, name)
 
 
 def frontend_names() -> list[str]:
-    _builtins()
     return list(_FRONTENDS)
+
+
+def retrieval_names() -> list[str]:
+    return list(_RETRIEVALS)
+
+
+def aligner_names() -> list[str]:
+    return list(_ALIGNERS)
+
+
+def graph_names() -> list[str]:
+    return list(_GRAPHS)
 
 
 def frontend_entry(name: str) -> FrontendEntry:
     """The entry of frontend ``name``; ``UserError`` listing the available ones otherwise."""
-    _builtins()
-    entry = _FRONTENDS.get(name)
-    if entry is None:
+    if name not in _FRONTENDS:
         raise UserError(f"unknown model or frontend '{name}' (--model / --frontend); available: "
                         f"{', '.join(_FRONTENDS)} (sl4slam models lists them), or a model's weights file or hub id")
-    if isinstance(entry, str):
-        module, _, function = entry.partition(":")
-        function, _, argument = function.partition(":")  # "module:function:argument" for a family of models
-        factory = getattr(importlib.import_module(module), function)
-        entry = factory(argument) if argument else factory()
-        _FRONTENDS[name] = entry
-    return entry
+    return _entry(_FRONTENDS, name)
 
 
 def frontend_entries() -> list[FrontendEntry]:
-    """Every registered frontend (lazy ones loaded)."""
+    """Every frontend in the catalog (each loaded)."""
     return [frontend_entry(name) for name in frontend_names()]
 
 
 def retrieval_entry(name: str) -> RetrievalEntry:
-    _builtins()
+    """The entry of retrieval ``name``; ``UserError`` listing the available ones otherwise."""
     if name not in _RETRIEVALS:
         raise UserError(f"unknown retrieval '{name}' (--retrieval); available: {', '.join(_RETRIEVALS)}")
-    return _RETRIEVALS[name]
+    return _entry(_RETRIEVALS, name)
+
+
+def aligner_entry(name: str) -> AlignerEntry:
+    """The entry of alignment model ``name``; ``UserError`` listing the available ones otherwise."""
+    if name not in _ALIGNERS:
+        raise UserError(f"unknown alignment model '{name}' (--alignment); available: {', '.join(_ALIGNERS)}")
+    return _entry(_ALIGNERS, name)
 
 
 def graph_entry(name: str) -> GraphEntry:
-    _builtins()
+    """The entry of graph design ``name``; ``UserError`` listing the available ones otherwise."""
     if name not in _GRAPHS:
         raise UserError(f"unknown graph design '{name}' (--graph); available: {', '.join(_GRAPHS)}")
-    return _GRAPHS[name]
+    return _entry(_GRAPHS, name)

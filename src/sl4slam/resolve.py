@@ -40,7 +40,8 @@ from typing import Any
 from .config import SLAMConfig
 from .errors import UserError
 from .intrinsics import parse_intrinsics
-from .registry import FrontendEntry, frontend_entries, frontend_entry, frontend_names
+from .registry import (FrontendEntry, aligner_entry, aligner_names, frontend_entries, frontend_entry, frontend_names,
+                       graph_entry, graph_names, retrieval_entry, retrieval_names)
 from .types import FrontendCapabilities
 
 
@@ -51,33 +52,30 @@ class Group(str, Enum):
     SIM3 = "sim3"
 
 
-class GraphDesign(str, Enum):
-    """One node per submap (VGGT-SLAM) or per keyframe (VGGT-SLAM 2.0)."""
-
-    SUBMAP = "submap"
-    KEYFRAME = "keyframe"
+def _members(names: list[str]) -> list[tuple[str, str]]:
+    """Enum members of catalog names: ``"sim3-points"`` is ``SIM3_POINTS``."""
+    return [(name.upper().replace("-", "_").replace(".", "_"), name) for name in names]
 
 
-class AlignmentModel(str, Enum):
-    """What measures the link between two submaps (``AlignmentConfig.model``)."""
-
-    SL4 = "sl4"
-    CALIBRATION = "calibration"
-    HYBRID = "hybrid"
-    SELECT = "select"
-    SIM3_POINTS = "sim3-points"
-    SIM3_CAMERAS = "sim3-cameras"
+class _Aligners(str, Enum):
+    """The base of :data:`AlignmentModel` (members come from the catalog)."""
 
     @property
     def group(self) -> Group:
         """The group of its measurements."""
-        return Group.SIM3 if self in (AlignmentModel.SIM3_POINTS, AlignmentModel.SIM3_CAMERAS) else Group.SL4
+        return Group(aligner_entry(self.value).group)
 
 
-class RetrievalKind(str, Enum):
-    SALAD = "salad"
-    ORB = "orb"
-    NONE = "none"
+GraphDesign = Enum("GraphDesign", _members(graph_names()), type=str, module=__name__)
+GraphDesign.__doc__ = """A graph design of the catalog (``sl4slam.registry``): ``SUBMAP`` (VGGT-SLAM, a node per
+submap), ``KEYFRAME`` (VGGT-SLAM 2.0, a node per keyframe)."""
+AlignmentModel = _Aligners("AlignmentModel", _members(aligner_names()), module=__name__)
+AlignmentModel.__doc__ = """What measures the link between two submaps (``AlignmentConfig.model``): an alignment
+model of the catalog (``SL4``, ``CALIBRATION``, ``HYBRID``, ``SELECT``, ``SIM3_POINTS``, ``SIM3_CAMERAS``)."""
+RetrievalKind = Enum("RetrievalKind", _members(retrieval_names()), type=str, module=__name__)
+RetrievalKind.__doc__ = """A retrieval of the catalog (``SALAD``, ``ORB``, ``NONE``)."""
+
+_GROUP_WORDS = {"sl4": "an SL(4)", "sim3": "a Sim(3)"}
 
 
 @dataclass(frozen=True)
@@ -239,9 +237,12 @@ def _graph(settled: SLAMConfig, group: Group, notes: list[str]) -> GraphDesign:
         settled.backend.graph = "keyframe" if group is Group.SL4 else "submap"
         notes.append(f"graph: {settled.backend.graph} (auto: the {'SL(4)' if group is Group.SL4 else 'Sim(3)'} default)")
     graph = GraphDesign(settled.backend.graph)
-    if graph is GraphDesign.KEYFRAME and group is not Group.SL4:
-        raise UserError("--graph keyframe needs --backend sl4 (the keyframe graph is an SL(4) graph); "
-                        "use --graph submap or auto with --backend sim3")
+    holds = graph_entry(graph.value).groups
+    if group.value not in holds:
+        others = [name for name in graph_names() if group.value in graph_entry(name).groups]
+        raise UserError(f"--graph {graph.value} needs --backend {' or '.join(holds)} (the {graph.value} graph is "
+                        f"{' or '.join(_GROUP_WORDS[g] for g in holds)} graph); "
+                        f"use --graph {' or '.join(others)} or auto with --backend {group.value}")
     return graph
 
 
@@ -265,7 +266,7 @@ def _alignment(settled: SLAMConfig, group: Group, graph: GraphDesign, notes: lis
 def _metric_upgrade(settled: SLAMConfig, group: Group, graph: GraphDesign, alignment: AlignmentModel,
                     notes: list[str]) -> bool:
     if settled.upgrade.mode == "auto":
-        projective = alignment in (AlignmentModel.SL4, AlignmentModel.HYBRID, AlignmentModel.SELECT)
+        projective = aligner_entry(alignment.value).projective
         on = group is Group.SL4 and (graph is GraphDesign.SUBMAP or projective)
         settled.upgrade.mode = "on" if on else "off"
         notes.append(f"metric upgrade: on (auto: {alignment.value} links may be 15-DOF, so the map inherits one projective "
@@ -310,7 +311,7 @@ def _attention(settled: SLAMConfig, graph: GraphDesign, retrieval: RetrievalKind
 
 def _device(settled: SLAMConfig, entry: FrontendEntry, retrieval: RetrievalKind) -> str:
     """The models' device; torch is imported only when a model runs."""
-    uses_models = entry.weights is not None or retrieval is RetrievalKind.SALAD
+    uses_models = entry.weights is not None or retrieval_entry(retrieval.value).uses_device
     if not uses_models:
         settled.device = "cpu" if settled.device == "auto" else settled.device
         return settled.device

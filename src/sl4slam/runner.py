@@ -150,7 +150,7 @@ def check_before_frames(source, resolved: ResolvedConfig, replay_dir, all_frames
     """Every check that can fail before a frame is read: the source against the frontend, the
     options against the source, the weights (present, cached or downloadable; one line within
     seconds when offline, and for a cut or corrupt file)."""
-    from .pipeline import source_problem
+    from .source_knowledge import source_problem
 
     if all_frames and live:
         raise UserError("--all-frames needs a re-readable source (a video file or a folder): a live source keeps "
@@ -171,7 +171,7 @@ def check_before_frames(source, resolved: ResolvedConfig, replay_dir, all_frames
         check_salad_weights(resolved.config.retrieval.salad_weights)
 
 
-def say_cpu_cost(resolved: ResolvedConfig, source_frames: int | None, stream=sys.stderr) -> None:
+def say_cpu_cost(resolved: ResolvedConfig, source_frames: int | None, stream=None) -> None:
     """With a model on the CPU, one line with the expected seconds per submap and for the whole source,
     and the faster models (``sl4slam.frontend.cost``); nothing on a GPU or without a model."""
     if resolved.device != "cpu" or resolved.frontend.cpu_work is None:
@@ -183,7 +183,7 @@ def say_cpu_cost(resolved: ResolvedConfig, source_frames: int | None, stream=sys
     others = [(entry.name, entry.cpu_work) for entry in frontend_entries() if entry.cpu_work is not None]
     found = estimate(resolved.frontend.name, resolved.frontend.cpu_work, submap.size + submap.overlap, matmul_rate(),
                      source_frames, submap.size, others)
-    print(f"sl4slam: {found.line()} (--quiet hides this line)", file=stream, flush=True)
+    print(f"sl4slam: {found.line()} (--quiet hides this line)", file=stream or sys.stderr, flush=True)
 
 
 def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig, replay_dir, progress: bool, on_submap,
@@ -244,7 +244,7 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
     if not pipeline.keyframes:
         raise RunInterrupted(f"{stop_reason or 'no keyframes'}; nothing was finished, so nothing was written to {out}",
                              exit_code)
-    result = pipeline.result()
+    result = pipeline.finish()
     result.stats["seconds_total"] = time.perf_counter() - start
     extra = {"stop_reason": stop_reason} if stop_reason else {}
     if live:

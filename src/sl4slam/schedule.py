@@ -1,12 +1,12 @@
 """When each step of a submap runs: one after the other, or the model overlapping the graph work.
 
-A submap goes through four steps of ``SLAMPipeline`` (``sl4slam.pipeline``):
+A submap goes through four steps of a :class:`SubmapSteps` (``sl4slam.pipeline.SLAMPipeline``):
 
 - A, ``assemble``: the shared frame, the new keyframes and the loop frames retrieval proposes;
 - F, ``run_frontend``: the model's forward (the expensive part; it touches no pipeline state);
 - R, ``accept``: the outcome taken: the keyframes handed to retrieval and the last one made the next
   submap's shared frame, or the failure booked;
-- S, ``finish``: points, odometry, graph, loop checks and the stored keyframes.
+- S, ``integrate``: points, odometry, graph, loop checks and the stored keyframes.
 
 Dependencies: A(k+1) needs R(k) (retrieval must hold submap k, and the shared frame comes from it);
 F(k+1) needs A(k+1); S(k) needs R(k). Nothing else: S(k) neither reads nor changes what A(k+1) and
@@ -27,15 +27,35 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from typing import TYPE_CHECKING, Sequence
+from typing import Protocol, Sequence
 
-from .types import Frame
-
-if TYPE_CHECKING:
-    from .pipeline import FrontendOutcome, SLAMPipeline, SubmapInput
+from .types import Frame, SubmapPrediction
+from .window import FrontendOutcome, SubmapInput
 
 
-def make_scheduler(pipeline: "SLAMPipeline", overlap: bool) -> "SequentialScheduler":
+class SubmapSteps(Protocol):
+    """What a scheduler needs of the pipeline: the steps of one submap (see the module doc)."""
+
+    def process_submap(self, new_frames: Sequence[Frame]) -> None:
+        """Every step of one submap, in order."""
+
+    def assemble(self, new_frames: Sequence[Frame]) -> SubmapInput:
+        """A: the submap's window."""
+
+    def run_frontend(self, work: SubmapInput) -> FrontendOutcome:
+        """F: the frontend's forward (touches no pipeline state)."""
+
+    def accept(self, work: SubmapInput, outcome: FrontendOutcome) -> SubmapPrediction | None:
+        """R: the outcome taken; the prediction, or ``None`` when the frontend failed."""
+
+    def integrate(self, work: SubmapInput, prediction: SubmapPrediction) -> bool:
+        """S: the graph work; ``False`` when the graph dropped the submap."""
+
+    def reframe(self, work: SubmapInput) -> SubmapInput:
+        """``work`` on the current shared frame (after the submap before it was dropped)."""
+
+
+def make_scheduler(pipeline: SubmapSteps, overlap: bool) -> "SequentialScheduler":
     """The scheduler of a run: overlapped when ``overlap`` (``SLAMConfig.overlap``, settled by
     ``sl4slam.resolve``), else sequential."""
     return OverlappedScheduler(pipeline) if overlap else SequentialScheduler(pipeline)
@@ -44,7 +64,7 @@ def make_scheduler(pipeline: "SLAMPipeline", overlap: bool) -> "SequentialSchedu
 class SequentialScheduler:
     """Every step of a submap as soon as its keyframes are selected: A, F, R, S."""
 
-    def __init__(self, pipeline: "SLAMPipeline") -> None:
+    def __init__(self, pipeline: SubmapSteps) -> None:
         self.pipeline = pipeline
 
     def submit(self, new_frames: Sequence[Frame]) -> None:
@@ -64,15 +84,15 @@ class SequentialScheduler:
 class _Forward:
     """One forward in a daemon thread; its outcome is read once it is done."""
 
-    def __init__(self, pipeline: "SLAMPipeline", work: "SubmapInput") -> None:
+    def __init__(self, pipeline: SubmapSteps, work: SubmapInput) -> None:
         self.work = work
-        self.outcome: "FrontendOutcome | None" = None
+        self.outcome: FrontendOutcome | None = None
         self._done = threading.Event()
         self._thread = threading.Thread(target=self._run, args=(pipeline,), name=f"sl4slam-frontend-{work.submap_id}",
                                         daemon=True)
         self._thread.start()
 
-    def _run(self, pipeline: "SLAMPipeline") -> None:
+    def _run(self, pipeline: SubmapSteps) -> None:
         try:
             self.outcome = pipeline.run_frontend(self.work)
         finally:
@@ -81,7 +101,7 @@ class _Forward:
     def done(self) -> bool:
         return self._done.is_set()
 
-    def result(self) -> "FrontendOutcome":
+    def result(self) -> FrontendOutcome:
         self._done.wait()
         if self.outcome is None:  # run_frontend catches every exception of the model; only a bug gets here
             raise RuntimeError(f"the frontend worker of submap {self.work.submap_id} ended without an outcome")
@@ -96,7 +116,7 @@ class OverlappedScheduler(SequentialScheduler):
         running: the forward in the worker, if any.
     """
 
-    def __init__(self, pipeline: "SLAMPipeline") -> None:
+    def __init__(self, pipeline: SubmapSteps) -> None:
         super().__init__(pipeline)
         self.waiting: deque[list[Frame]] = deque()
         self.running: _Forward | None = None
@@ -134,7 +154,7 @@ class OverlappedScheduler(SequentialScheduler):
         prediction = self.pipeline.accept(forward.work, forward.result())  # R(k)
         if self.waiting:
             self._start(self.waiting.popleft())  # A(k+1), F(k+1) in the worker ...
-        if prediction is not None and not self.pipeline.finish(forward.work, prediction):  # ... while S(k) runs here
+        if prediction is not None and not self.pipeline.integrate(forward.work, prediction):  # ... while S(k) runs here
             self._reframe()
         return True
 

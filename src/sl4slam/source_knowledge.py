@@ -10,7 +10,8 @@
   to metres; a submap without enough sensor depth keeps its neighbour's scale, counted.
 
 The pipeline calls :meth:`SourceKnowledge.apply` on every accepted prediction, before its points
-are made; :meth:`summary` and :meth:`notes` go into the run's summary.
+are made; :meth:`summary` and :meth:`notes` go into the run's summary. :func:`source_problem` says
+why a run cannot use a source at all (checked before any frame is read).
 """
 
 from __future__ import annotations
@@ -21,14 +22,30 @@ from typing import Sequence
 
 import numpy as np
 
-from .config import SLAMConfig
+from .config import SLAMConfig, SourceConfig
 from .errors import UserError
 from .intrinsics import FOCAL_RATIO_WARNING, KnownIntrinsics, focal_ratios, from_source, on_grid
 from .sensor_scale import scaled, sensor_scale
 from .submap import confidence_mask
-from .types import Frame, FrameSource, Frontend, SubmapPrediction
+from .types import Frame, FrameSource, Frontend, FrontendCapabilities, SubmapPrediction
 
 log = logging.getLogger("sl4slam.pipeline")
+
+
+def source_problem(source: FrameSource, capabilities: FrontendCapabilities, frontend_name: str,
+                   settings: SourceConfig | None = None) -> str | None:
+    """Why a run cannot use ``source`` with this frontend and these ``[source]`` settings (too few
+    frames, no ground truth for a frontend that reads it, no depth images for the sensor's scale),
+    or ``None``; checked before any frame is read."""
+    if len(source) < 2:
+        return f"{source.name}: {len(source)} frame(s) found; SLAM needs at least 2 frames"
+    if capabilities.needs_ground_truth and not source.has_ground_truth:
+        return (f"{source.name} has no depth and ground-truth poses, which the {frontend_name} frontend needs (an RGB-D "
+                "sequence: TUM, 7-Scenes or the synthetic world); use a model (--model vggt)")
+    if settings is not None and settings.metric_depth == "sensor" and not source.has_ground_truth:
+        return (f"--metric-depth sensor needs depth images, which {source.name} has not (an RGB-D sequence: TUM, "
+                "7-Scenes); use --metric-depth off")
+    return None
 
 
 class SourceKnowledge:

@@ -28,22 +28,20 @@ the pipeline falls back to when a fit fails (with an inflated sigma).
 from __future__ import annotations
 
 from abc import abstractmethod
+from typing import ClassVar, Sequence
 
 import numpy as np
 
-from typing import TYPE_CHECKING, Sequence
-
 from ..config import AlignmentConfig, SLAMConfig
 from ..edges import is_camera_link
+from ..registry import AlignerEntry, aligner_entry
+from ..resolve import ResolvedConfig, resolve
 from ..types import Aligner, Alignment, FrameView
 from .camera_constrained import camera_constrained_sl4
 from .select import choose_link
 from .shared import link_from_shared_frames
 from .ransac import estimate_sim3, estimate_sl4, relief, transfer_errors
 from .sim3 import calibration_scale_link, sim3_from_shared_frame
-
-if TYPE_CHECKING:
-    from ..resolve import ResolvedConfig
 
 
 def shared_pixels(view_a: FrameView, view_b: FrameView, limit: int) -> np.ndarray:
@@ -60,12 +58,22 @@ class PointAligner(Aligner):
     Attributes:
         fits_points: the model is fitted to the points (several frames' points are then fitted
             together); otherwise it reads the frame's cameras (several frames' links are averaged).
+        description: one line on what the model measures (its catalog entry's).
+        projective: its links may be 15-DOF fits (``sl4slam.registry.AlignerEntry.projective``).
     """
 
     fits_points: bool = True
+    description: ClassVar[str] = ""
+    projective: ClassVar[bool] = False
 
     def __init__(self, config: AlignmentConfig) -> None:
         self.config = config
+
+    @classmethod
+    def registry_entry(cls) -> AlignerEntry:
+        """This model in the catalog (``sl4slam.registry``): built from the run's ``[alignment]`` section."""
+        return AlignerEntry(name=cls.model, build=lambda resolved: cls(resolved.config.alignment),
+                            description=cls.description, group=cls.group, projective=cls.projective)
 
     def align_frames(self, pairs: Sequence[tuple[FrameView, FrameView]], seed: int) -> Alignment:
         """One link from several shared frames, robust to a frame with bad depth
@@ -128,6 +136,8 @@ class SL4Aligner(PointAligner):
 
     model = "sl4"
     group = "sl4"
+    description = "15-DOF projective fit of the shared frames' points, DLT in RANSAC (the paper's)"
+    projective = True
 
     def camera_edge(self, view_a: FrameView, view_b: FrameView) -> Alignment:
         """The calibration-and-scale link of the frame's two cameras (no point fit)."""
@@ -198,6 +208,7 @@ class Sim3PointAligner(PointAligner):
 
     model = "sim3-points"
     group = "sim3"
+    description = "7-DOF similarity of the shared frames' points, Umeyama in RANSAC"
 
     def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
         return estimate_sim3(X_a, X_b, self.config, seed=seed)
@@ -209,6 +220,7 @@ class Sim3CameraAligner(PointAligner):
     model = "sim3-cameras"
     group = "sim3"
     fits_points = False
+    description = "7-DOF similarity from the shared frames' two cameras and their median depth ratio"
 
     def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
         return sim3_from_shared_frame(view_a.T_cam_submap, view_b.T_cam_submap, X_a, X_b, self.config.inlier_threshold)
@@ -220,6 +232,8 @@ class CalibrationAligner(SL4Aligner):
 
     model = "calibration"
     fits_points = False
+    description = "the shared frames' cameras, intrinsics and median depth ratio as an SL(4) map (VGGT-SLAM 2.0's)"
+    projective = False
 
     def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
         return calibration_scale_link(view_a.K, view_a.T_cam_submap, view_b.K, view_b.T_cam_submap, X_a, X_b,
@@ -242,6 +256,7 @@ class HybridAligner(SL4Aligner):
     """
 
     model = "hybrid"
+    description = "the calibration link, or the 15-DOF fit where it explains the shared frame markedly better"
 
     def _degenerate(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int, why: str,
                     stand_in: Alignment | None = None) -> Alignment:
@@ -272,6 +287,7 @@ class SelectAligner(SL4Aligner):
     the held-out errors and the choice."""
 
     model = "select"
+    description = "the calibration link or the 15-DOF fit, whichever predicts held-out shared points better"
 
     def __init__(self, config: AlignmentConfig) -> None:
         super().__init__(config)
@@ -285,15 +301,8 @@ class SelectAligner(SL4Aligner):
         return choose_link(self._fit, self._link, pairs, seed)
 
 
-ALIGNERS: dict[str, type[PointAligner]] = {
-    "sl4": SL4Aligner, "calibration": CalibrationAligner, "hybrid": HybridAligner, "select": SelectAligner,
-    "sim3-points": Sim3PointAligner, "sim3-cameras": Sim3CameraAligner}
-
-
-def make_aligner(config: "ResolvedConfig | SLAMConfig") -> Aligner:
+def make_aligner(config: ResolvedConfig | SLAMConfig) -> Aligner:
     """The aligner of a run's settled alignment model (``sl4slam.resolve``: "auto" is the one that
-    fits the graph)."""
-    from ..resolve import resolve
-
+    fits the graph), built by its catalog entry (``sl4slam.registry``)."""
     resolved = resolve(config)
-    return ALIGNERS[resolved.alignment.value](resolved.config.alignment)
+    return aligner_entry(resolved.alignment.value).build(resolved)

@@ -7,9 +7,35 @@ inlier masks always cover every input row and ratios and RMS mean the same thing
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
 
-from ..types import Alignment
+from ..config import AlignmentConfig
+from ..types import Alignment, FrameView
+
+class FrameFitter(Protocol):
+    """What measuring a link from shared frames needs of an aligner (``sl4slam.alignment.shared``,
+    ``sl4slam.alignment.select``); every ``sl4slam.alignment.aligner.PointAligner`` is one.
+
+    Attributes:
+        config: its alignment settings.
+        fits_points: the model is fitted to points (several frames' points are fitted together);
+            otherwise it reads the frames' cameras (several frames' links are averaged).
+    """
+
+    config: AlignmentConfig
+    fits_points: bool
+
+    def pairs(self, view_a: FrameView, view_b: FrameView) -> tuple[np.ndarray, np.ndarray]:
+        """``(X_a, X_b)`` ``(N, 3)`` float64 of the frame's shared confident pixels."""
+
+    def fit(self, X_a: np.ndarray, X_b: np.ndarray, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
+        """The model's fit ``X_a ~ H_a_b X_b`` on the shared pixels' points ``(N, 3)``."""
+
+    def align(self, view_a: FrameView, view_b: FrameView, seed: int) -> Alignment:
+        """The link measured on one shared frame."""
+
 
 SUPPORT_POINTS = 2000
 """Inlier pairs an ``Alignment`` keeps (an evenly strided subset) for weighting its edge by its

@@ -42,17 +42,15 @@ one seed: 0.0094 m against 0.0007 m with the vote).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from ..edges import is_camera_link
 from ..types import Alignment, FrameView
+from .common import FrameFitter
 from .ransac import transfer_errors
 from .shared import FrameMeasurements, link_from_shared_frames, mean_camera_link, measure_frames
-
-if TYPE_CHECKING:
-    from .aligner import CalibrationAligner, SL4Aligner
 
 def transfer_distances(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray) -> np.ndarray:
     """``(n,)`` ``|X_a - H X_b|`` per pair (points mapped behind the camera: infinitely far)."""
@@ -77,10 +75,12 @@ def fit_predicts_better(log_ratios: np.ndarray, confidence: float, min_gain: flo
     return mean + t.ppf(confidence, len(log_ratios) - 1) * spread / np.sqrt(len(log_ratios)) < 0
 
 
-def choose_link(fit_aligner: "SL4Aligner", link_aligner: "CalibrationAligner",
+def choose_link(fit_aligner: FrameFitter, link_aligner: FrameFitter,
                 pairs: Sequence[tuple[FrameView, FrameView]], seed: int) -> Alignment:
     """The link of ``pairs`` (the shared frames' views in the older and newer submap) by the
-    cross-validated choice of the module doc; ``extras["select"]`` records the held-out errors."""
+    cross-validated choice of the module doc; ``extras["select"]`` records the held-out errors.
+    ``fit_aligner`` measures the 15-DOF fit (an ``SL4Aligner``), ``link_aligner`` the
+    calibration-and-scale link (a ``CalibrationAligner``)."""
     fits = measure_frames(fit_aligner, pairs, seed)
     links = measure_frames(link_aligner, pairs, seed)
     link = link_from_shared_frames(link_aligner, pairs, seed, links)
@@ -104,7 +104,7 @@ def choose_link(fit_aligner: "SL4Aligner", link_aligner: "CalibrationAligner",
     return chosen
 
 
-def _frame_folds(fit_aligner: "SL4Aligner", pairs: Sequence[tuple[FrameView, FrameView]], fits: FrameMeasurements,
+def _frame_folds(fit_aligner: FrameFitter, pairs: Sequence[tuple[FrameView, FrameView]], fits: FrameMeasurements,
                  links: FrameMeasurements, frames: list[int], seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """``(fit distances, link distances)`` ``(n,)`` on each frame left out, both models measured on the
     others. A degenerate training frame measured by the link itself counts as the link (a tie: it

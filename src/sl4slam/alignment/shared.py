@@ -22,17 +22,14 @@ confident pixels, unusable cameras).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 import numpy as np
 from scipy.linalg import expm, logm
 
 from ..types import Alignment, FrameView
-from .common import make_alignment
+from .common import FrameFitter, make_alignment
 from .ransac import transfer_errors
-
-if TYPE_CHECKING:
-    from .aligner import PointAligner
 
 def tangent_mean(H: Sequence[np.ndarray], reference: np.ndarray, weights: Sequence[float] | None = None) -> np.ndarray:
     """The (weighted) mean of 4x4 transforms ``H`` in the tangent at ``reference``:
@@ -83,7 +80,7 @@ class FrameMeasurements:
     problems: list[str]
 
 
-def measure_frames(aligner: "PointAligner", pairs: Sequence[tuple[FrameView, FrameView]], seed: int) -> FrameMeasurements:
+def measure_frames(aligner: FrameFitter, pairs: Sequence[tuple[FrameView, FrameView]], seed: int) -> FrameMeasurements:
     """Every shared frame measured alone by ``aligner`` (frame ``k`` with seed ``seed + k``)."""
     measured = FrameMeasurements([], [], [], [])
     for k, (view_a, view_b) in enumerate(pairs):
@@ -101,7 +98,7 @@ def measure_frames(aligner: "PointAligner", pairs: Sequence[tuple[FrameView, Fra
     return measured
 
 
-def link_from_shared_frames(aligner: "PointAligner", pairs: Sequence[tuple[FrameView, FrameView]], seed: int,
+def link_from_shared_frames(aligner: FrameFitter, pairs: Sequence[tuple[FrameView, FrameView]], seed: int,
                             measured: FrameMeasurements | None = None) -> Alignment:
     """The link ``X_a ~ H X_b`` from every shared frame (module doc).
 

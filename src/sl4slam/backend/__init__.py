@@ -2,20 +2,20 @@
 engine in SL(4) and Sim(3) (``pose_graph``, ``sl4``, ``sim3``), and the two graph designs on it:
 the submap graph (VGGT-SLAM, ``submap``) and the keyframe graph (VGGT-SLAM 2.0, ``keyframe``).
 
-``make_backend`` builds the graph a resolved config names; ``sl4slam.backend.evidence`` turns an
-alignment into the information matrix of its edge.
+Each design's module has a ``registry_entry()`` (``sl4slam.registry.GraphEntry``), named in the
+catalog (``sl4slam.registry``); ``make_backend`` builds a built-in design from a ``BackendConfig``
+alone. ``sl4slam.backend.evidence`` turns an alignment into the information matrix of its edge.
 """
 
 from __future__ import annotations
 
 from ..config import BackendConfig
-from ..registry import GraphEntry, register_graph
 from .interface import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
 from .keyframe import KeyframeBackend
 from .pose_graph import PoseGraph
 from .sim3 import Sim3PoseGraph
 from .sl4 import SL4PoseGraph
-from .submap import Sim3Backend, SL4Backend, SubmapBackend
+from .submap import Sim3Backend, SL4Backend, SubmapBackend, submap_backend
 
 __all__ = ["Backend", "BackendUpdateError", "KeyframeBackend", "PoseGraph", "SL4Backend", "SL4PoseGraph", "Sim3Backend",
            "Sim3PoseGraph", "SubmapBackend", "SubmapFrames", "WorldEstimate", "make_backend"]
@@ -29,10 +29,4 @@ def make_backend(config: BackendConfig, design: str | None = None) -> Backend:
         return KeyframeBackend(config)
     if design != "submap":
         raise ValueError(f"unknown graph design {design!r} (resolve the config first: 'auto' is settled there)")
-    return Sim3Backend(config) if config.kind == "sim3" else SL4Backend(config)
-
-
-register_graph(GraphEntry("keyframe", lambda resolved: make_backend(resolved.config.backend, "keyframe"),
-                          "VGGT-SLAM 2.0: a node per keyframe, calibration links between submaps", ("sl4",)))
-register_graph(GraphEntry("submap", lambda resolved: make_backend(resolved.config.backend, "submap"),
-                          "VGGT-SLAM: a node per submap, 15-DOF (or Sim(3)) links", ("sl4", "sim3")))
+    return submap_backend(config)

@@ -44,6 +44,7 @@ import numpy as np
 
 from ..config import BackendConfig
 from ..geometry import normalize_sl4, se3_inverse, to_4x4
+from ..registry import GraphEntry
 from .interface import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
 from .pose_graph import transport_information
 from .sl4 import SL4PoseGraph
@@ -288,3 +289,9 @@ class KeyframeBackend(Backend):
 
     def generators(self) -> np.ndarray:
         return self._generators
+
+
+def registry_entry() -> GraphEntry:
+    """The keyframe graph in the catalog (``sl4slam.registry``): built from the run's ``[backend]`` section."""
+    return GraphEntry("keyframe", lambda resolved: KeyframeBackend(resolved.config.backend),
+                      "VGGT-SLAM 2.0: a node per keyframe, calibration links between submaps", ("sl4",))

@@ -566,6 +566,16 @@ class PoseGraph(ABC):
         :meth:`final_estimates`), as ``gtsam.Values``."""
         return gauss_newton(self.factor_graph(), self._isam.calculateBestEstimate(), max_iterations)
 
+    def isam_values(self) -> gtsam.Values:
+        """iSAM2's current estimate as ``gtsam.Values`` (keys :meth:`key`; nodes added since the last
+        :meth:`update` are not in it), e.g. to start a batch optimizer of :meth:`factor_graph` from."""
+        return self._isam.calculateBestEstimate()
+
+    def matrices_in(self, values: gtsam.Values) -> dict[int, np.ndarray]:
+        """``{node: (4, 4) float64}`` every node's matrix as ``values`` hold it (e.g. a batch
+        optimizer's result over :meth:`factor_graph`), in insertion order."""
+        return {node: self._from_gtsam(self._at(values, self.key(node))) for node in self._order}
+
     def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray) -> float:
         """Squared Mahalanobis distance of the loop ``H_i_j`` between nodes ``i`` and ``j`` from the
         current estimate, under the two nodes' joint covariance plus the measurement's own

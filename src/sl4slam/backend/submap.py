@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..config import BackendConfig
+from ..registry import GraphEntry
 from .interface import Backend, SubmapFrames, WorldEstimate
 from .pose_graph import PoseGraph
 from .sim3 import Sim3PoseGraph
@@ -95,3 +96,14 @@ class Sim3Backend(SubmapBackend):
 
     def __init__(self, config: BackendConfig, revisit_priors: bool = False) -> None:
         super().__init__(Sim3PoseGraph(config, revisit_priors))
+
+
+def submap_backend(config: BackendConfig) -> SubmapBackend:
+    """The submap graph in the group ``config.kind`` ("sl4" or "sim3")."""
+    return Sim3Backend(config) if config.kind == "sim3" else SL4Backend(config)
+
+
+def registry_entry() -> GraphEntry:
+    """The submap graph in the catalog (``sl4slam.registry``): built from the run's ``[backend]`` section."""
+    return GraphEntry("submap", lambda resolved: submap_backend(resolved.config.backend),
+                      "VGGT-SLAM: a node per submap, 15-DOF (or Sim(3)) links", ("sl4", "sim3"))

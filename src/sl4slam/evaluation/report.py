@@ -20,17 +20,14 @@ import io
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..atomic import atomic_path, atomic_write_text
 from ..config import SLAMConfig, config_to_dict
 from .datasets import get_dataset
-from .protocol import SEEDED_SETTINGS
-
-if TYPE_CHECKING:  # pragma: no cover
-    from .protocol import EvalOutcome, EvalSettings
+from .plan import SEEDED_SETTINGS, EvalOutcome, EvalSettings
 
 TRAJECTORY_METRICS = [("ate_rmse", "ATE RMSE [m]")]
 DENSE_METRICS = [("accuracy", "Accuracy [m]"), ("completion", "Completion [m]"), ("chamfer", "Chamfer [m]")]
@@ -178,7 +175,7 @@ def changed_settings(config: SLAMConfig) -> dict:
     return {k: v for k, v in current.items() if defaults.get(k) != v and k not in decided_by_the_evaluation}
 
 
-def markdown(outcome: "EvalOutcome", settings: "EvalSettings", config: SLAMConfig, summary: dict) -> str:
+def markdown(outcome: EvalOutcome, settings: EvalSettings, config: SLAMConfig, summary: dict) -> str:
     dataset = get_dataset(settings.dataset)
     metrics = metrics_of(settings.dataset, settings.dense)
     sequences = [s.name for s in outcome.sequences]
@@ -276,7 +273,7 @@ def plot_sequence(path: Path, title: str, runs: list[dict]) -> bool:
     return True
 
 
-def write_report(out_dir: Path, outcome: "EvalOutcome", settings: "EvalSettings", config: SLAMConfig) -> dict[str, Any]:
+def write_report(out_dir: Path, outcome: EvalOutcome, settings: EvalSettings, config: SLAMConfig) -> dict[str, Any]:
     """Write ``tables.md``, ``runs.csv``, ``results.json`` and the figures; return their paths."""
     import dataclasses
 

@@ -1,4 +1,4 @@
-"""Frontends: feed-forward reconstruction of a window of frames into one submap, registered by name.
+"""Frontends: feed-forward reconstruction of a window of frames into one submap, named in the catalog.
 
 - ``vggt``: our VGGT-1B implementation (``sl4slam.frontend.vggt.VGGTFrontend``).
 - ``da3-small`` ... ``da3-giant-1.1``: Depth Anything 3, every released size
@@ -10,35 +10,41 @@
   backend can be re-run on a CPU without the model.
 
 Each frontend module has a ``registry_entry()`` (``sl4slam.registry.FrontendEntry``: its name,
-capabilities, weights, licence and builder); the lines below register them lazily, so a run
-imports only the model it uses. A new model adds its line here.
+capabilities, weights, licence and builder), named lazily in the catalog (``sl4slam.registry``),
+so a run imports only the model it uses. A new model adds its line there.
 """
 
 from __future__ import annotations
 
 import os
 
-from ..registry import register_frontend
-from ..types import Frontend
+from ..resolve import ResolvedConfig, resolve
+from ..types import Frontend, FrontendCapabilities
 from .cache import CachingFrontend, ReplayFrontend
 
-register_frontend("sl4slam.frontend.vggt:registry_entry", "vggt")
-for _size in ("small", "base", "large", "large-1.1", "giant", "giant-1.1"):
-    register_frontend(f"sl4slam.frontend.da3:registry_entry:{_size}", f"da3-{_size}")
-for _variant in ("pi3", "pi3x"):
-    register_frontend(f"sl4slam.frontend.pi3:registry_entry:{_variant}", _variant)
-register_frontend("sl4slam.frontend.simulated:registry_entry", "simulated")
+
+def replay_capabilities(replay_dir: str | os.PathLike) -> FrontendCapabilities:
+    """What a recorded frontend cache can give a replay (``resolve(..., capabilities=...)``)."""
+    return ReplayFrontend(replay_dir).capabilities
+
+
+def build_frontend(resolved: ResolvedConfig, frontend: Frontend | None = None,
+                   replay_dir: str | os.PathLike | None = None, cache_dir: str | os.PathLike | None = None) -> Frontend:
+    """The run's frontend: ``frontend`` if given, else a replay of ``replay_dir``, else the one the
+    catalog builds; recorded to ``cache_dir`` when given."""
+    if frontend is None:
+        frontend = ReplayFrontend(replay_dir) if replay_dir is not None else resolved.frontend.build(resolved)
+    if cache_dir is not None:
+        frontend = CachingFrontend(frontend, cache_dir)
+    return frontend
 
 
 def make_frontend(config, replay_dir: str | os.PathLike | None = None,
                   cache_dir: str | os.PathLike | None = None) -> Frontend:
     """The frontend a config names (``SLAMConfig`` or resolved), optionally replayed from or
-    recorded to a cache (``sl4slam.compose.build_frontend``)."""
-    from ..compose import build_frontend, replay_capabilities
-    from ..resolve import resolve
-
+    recorded to a cache (:func:`build_frontend`)."""
     resolved = resolve(config, capabilities=replay_capabilities(replay_dir) if replay_dir is not None else None)
     return build_frontend(resolved, replay_dir=replay_dir, cache_dir=cache_dir)
 
 
-__all__ = ["make_frontend", "CachingFrontend", "ReplayFrontend"]
+__all__ = ["build_frontend", "make_frontend", "replay_capabilities", "CachingFrontend", "ReplayFrontend"]

@@ -43,20 +43,20 @@ from ..models.pi3.cameras import (
     probability_from_logits,
     to_model_intrinsics,
 )
-from ..models.pi3.model import VARIANTS, Pi3, Pi3Config, Pi3X
+from ..models.pi3.memory import estimate_peak_bytes, plan_memory  # noqa: F401  (estimate_peak_bytes: API)
+from ..models.pi3.model import VARIANTS, Pi3, Pi3X
 from ..models.pi3.preprocess import (
-    PATCH_SIZE,
     PIXEL_BUDGET,
     ResizeTransform,
     preprocess_images,
 )
 from ..models.pi3.weights import WEIGHTS_SOURCES
+from ..models.precision import cuda_native_bf16, resolve_mode
 from ..types import Frame, FrontendCapabilities, SubmapPrediction
 from .device import resolve_device  # noqa: F401  (part of this module's API)
 
 logger = logging.getLogger(__name__)
 
-GIB = 1024**3
 HEAD_CHUNK_FRAMES = 4
 """Frames Pi3X's convolutional heads decode at once (outputs do not depend on it)."""
 CAPABILITIES = {
@@ -67,38 +67,17 @@ CAPABILITIES = {
 }
 """What each variant's frontend can do (the class attribute is π³'s; a Pi3X instance has its own)."""
 
-# Peak-memory model of one forward with the efficient kernel (float32 activations), fitted to the
-# full-size measurements in benchmarks/results/pi3.md: bytes per token and channel of the
-# transformer activations, and bytes per output pixel of a frame inside a convolutional head.
-_TOKEN_BYTES_PER_CHANNEL = 64
-_CONV_HEAD_BYTES_PER_PIXEL = 1100
-_OUTPUT_BYTES_PER_PIXEL = 64
+#: Autocast dtype of the forward for each ``dtype`` (``None``: plain float32).
+AUTOCAST_DTYPES: dict[str, torch.dtype | None] = {"fp32": None, "float32": None, "bf16": torch.bfloat16,
+                                                  "bfloat16": torch.bfloat16, "fp16": torch.float16,
+                                                  "float16": torch.float16}
 
 
 def resolve_compute_dtype(dtype: str, device: torch.device) -> torch.dtype | None:
     """Autocast dtype of the forward (``None``: plain float32). "auto": bf16 on CUDA GPUs of compute
     capability 8 or more, fp16 on older ones (the authors' choice), float32 on the CPU."""
-    names = {"fp32": None, "float32": None, "bf16": torch.bfloat16, "bfloat16": torch.bfloat16,
-             "fp16": torch.float16, "float16": torch.float16}
-    if dtype == "auto":
-        if device.type != "cuda":
-            return None
-        return torch.bfloat16 if torch.cuda.get_device_capability(device)[0] >= 8 else torch.float16
-    if dtype not in names:
-        raise UserError(f"unknown π³ dtype '{dtype}': use auto, fp32, bf16 or fp16")
-    return names[dtype]
-
-
-def estimate_peak_bytes(config: Pi3Config, frames: int, height: int, width: int, head_chunk: int,
-                        weight_bytes: int) -> int:
-    """Estimated peak memory of one forward (efficient attention, float32): the weights, the
-    transformer activations (linear in the frame count: flash attention holds no table) and one
-    chunk of the convolutional heads."""
-    tokens = frames * (config.decoder_registers + (height // PATCH_SIZE) * (width // PATCH_SIZE))
-    activations = tokens * max(config.decoder_dim, config.head_decoder_dim) * _TOKEN_BYTES_PER_CHANNEL
-    pixels = height * width
-    heads = min(head_chunk, frames) * pixels * _CONV_HEAD_BYTES_PER_PIXEL if config.variant == "pi3x" else 0
-    return int(weight_bytes + activations + heads + frames * pixels * _OUTPUT_BYTES_PER_PIXEL)
+    return resolve_mode(dtype, device, AUTOCAST_DTYPES, f"unknown π³ dtype '{dtype}': use auto, fp32, bf16 or fp16",
+                        bf16=cuda_native_bf16)
 
 
 class Pi3Frontend:
@@ -173,18 +152,8 @@ class Pi3Frontend:
         """
         if self.max_memory_gb <= 0:
             return HEAD_CHUNK_FRAMES
-        budget = int(self.max_memory_gb * GIB)
-        config, weights = self.model.config, self.weight_bytes()
-        for chunk in range(min(frames, 16), 0, -1):
-            if estimate_peak_bytes(config, frames, height, width, chunk, weights) <= budget:
-                return chunk
-        largest = 0
-        while largest < 4096 and estimate_peak_bytes(config, largest + 1, height, width, 1, weights) <= budget:
-            largest += 1
-        raise UserError(f"a {self.variant} submap of {frames} frames at {width}x{height} needs about "
-                        f"{estimate_peak_bytes(config, frames, height, width, 1, weights) / GIB:.1f} GiB, more than "
-                        f"the {self.max_memory_gb:g} GiB memory budget; the largest submap that fits has {largest} "
-                        "frames (lower the submap size or raise the budget)")
+        plan = plan_memory(self.model.config, self.weight_bytes(), self.max_memory_gb, frames, height, width)
+        return plan.head_chunk_frames
 
     @torch.inference_mode()
     def predict(self, images: torch.Tensor, intrinsics: np.ndarray | None = None) -> dict[str, torch.Tensor]:

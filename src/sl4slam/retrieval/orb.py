@@ -46,6 +46,7 @@ import scipy.sparse
 
 from ..config import RetrievalConfig
 from ..errors import UserError
+from ..registry import RetrievalEntry
 from ..types import Frame, LoopCandidate
 
 WORD_BITS = 16
@@ -497,3 +498,9 @@ def _global_vector(features: OrbFeatures) -> np.ndarray:
     vector = np.bincount(features.word_ids % GLOBAL_DIM, weights=features.word_tf, minlength=GLOBAL_DIM)
     norm = np.linalg.norm(vector)
     return (vector / norm if norm > 0 else vector).astype(np.float32)
+
+
+def registry_entry() -> RetrievalEntry:
+    """ORB retrieval in the catalog (``sl4slam.registry``): built from the run's ``[retrieval]`` section."""
+    return RetrievalEntry("orb", lambda resolved: OrbRetrieval(resolved.config.retrieval),
+                          "ORB features, bag of words and geometric verification; no weights")

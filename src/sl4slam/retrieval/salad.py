@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from ..config import RetrievalConfig
+from ..registry import RetrievalEntry
 from ..types import Frame, LoopCandidate
 
 
@@ -255,3 +256,10 @@ class SaladRetrieval:
             )
             for q in order
         ]
+
+
+def registry_entry() -> RetrievalEntry:
+    """SALAD retrieval in the catalog (``sl4slam.registry``): built from the run's ``[retrieval]`` section,
+    on the run's device."""
+    return RetrievalEntry("salad", lambda resolved: SaladRetrieval(resolved.config.retrieval, device=resolved.device),
+                          "DINOv2 + SALAD descriptors (the paper's); needs dino_salad.ckpt", uses_device=True)

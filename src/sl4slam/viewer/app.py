@@ -15,6 +15,10 @@ frame that shows the map. viser's default environment map is switched off: nothi
 lit by it, and while its image loads viser draws the canvas at 5 % opacity and fades it in over
 five frames, which with software WebGL and a large cloud took tens of seconds during which the
 map was a white haze.
+
+A result folder is served before its map is read (:mod:`sl4slam.viewer.result`): a status line under
+the title says what is still loading (:meth:`MapViewer.set_status`), and the panel's point counts
+are the whole map's from the start (:attr:`~sl4slam.viewer.scene.MapState.totals`).
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from ..errors import UserError
 from .scene import (
     COLOR_MODES,
     MapState,
+    MapTotals,
     SubmapCloud,
     ViewerSettings,
     auto_point_size,
@@ -102,11 +107,18 @@ class MapViewer:
     Controls: point budget (fixed at start), point size, confidence percentile, colouring
     (RGB / submap / confidence), visibility of cameras, trajectory, loops and ground truth, a
     follow-camera toggle with a keyframe slider, and the run summary.
+
+    Attributes:
+        loader: what reads a result folder's map into this viewer
+            (:class:`~sl4slam.viewer.result.ResultLoader`, set by
+            :func:`~sl4slam.viewer.result.view_result`); ``None`` otherwise.
     """
 
     def __init__(self, settings: ViewerSettings | None = None, title: str = "sl4slam", stream: TextIO = sys.stdout) -> None:
         self.settings = settings or ViewerSettings()
         self._closed = False
+        self._close_callbacks: list = []
+        self.loader = None
         self.server = start_server(self.settings.host, self.settings.port, stream=stream)
         # no share button: the map stays on the interface it is served on
         self.server.gui.configure_theme(control_width="medium", show_share_button=False, show_logo=False)
@@ -120,16 +132,23 @@ class MapViewer:
         self._point_size = self.settings.point_size
         self._spacing: float | None = None
         self._spacing_of: tuple = ()
+        self._status = None
+        self._given_views: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._build_gui(title)
 
     @property
     def port(self) -> int:
         return self.server.get_port()
 
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
+        return self._closed
+
     # ------------------------------------------------------------------ GUI
     def _build_gui(self, title: str) -> None:
         gui = self.server.gui
-        gui.add_markdown(f"**{title}**")
+        self._title = gui.add_markdown(f"**{title}**")
         with gui.add_folder("Map"):
             self.gui_size = gui.add_slider(
                 "Point size", min=0.1, max=10.0, step=0.1, initial_value=1.0,
@@ -184,13 +203,44 @@ class MapViewer:
         before sending geometry, so that a browser gets a complete panel before any cloud."""
         with self.lock:
             state = self.state
-            self.gui_points.content = (f"points: {state.total_points():,} shown of "
-                                       f"{sum(c.full_count for c in state.clouds.values()):,}"
-                                       + ("" if state.has_confidence() else " (no per-pixel confidence saved: mask only)"))
-            self.gui_confidence.disabled = not state.has_confidence()
-            self.gui_keyframe.max = max(1, len(state.T_world_cam) - 1)
+            totals: MapTotals = state.totals if state.totals is not None else state.counted_totals()
+            points = (f"points: {totals.shown:,} shown of {totals.full:,}"
+                      + ("" if totals.confidence else " (no per-pixel confidence saved: mask only)"))
+            # only what changed is sent: a browser that opens later gets the panel before the clouds
+            if self.gui_points.content != points:
+                self.gui_points.content = points
+            if self.gui_confidence.disabled != (not totals.confidence):
+                self.gui_confidence.disabled = not totals.confidence
+            if self.gui_keyframe.max != max(1, len(state.T_world_cam) - 1):
+                self.gui_keyframe.max = max(1, len(state.T_world_cam) - 1)
             if self.gui_summary.content != state.summary_markdown:
                 self.gui_summary.content = state.summary_markdown
+
+    def set_status(self, markdown: str | None) -> None:
+        """Show ``markdown`` in a line under the panel's title (``None`` removes the line)."""
+        with self.lock:
+            if markdown is None:
+                if self._status is not None:
+                    self._status.remove()
+                    self._status = None
+            elif self._status is None:
+                self._status = self.server.gui.add_markdown(markdown, order=self._title.order + 0.5)
+            elif self._status.content != markdown:
+                self._status.content = markdown
+
+    def has_browsers(self) -> bool:
+        """Whether a browser is connected."""
+        return bool(self.server.get_clients())
+
+    def sent_clouds(self) -> list[int]:
+        """The submaps whose clouds were sent."""
+        with self.lock:
+            return list(self._clouds)
+
+    def unsent_clouds(self) -> list[int]:
+        """The submaps in the state whose clouds were not sent yet."""
+        with self.lock:
+            return [i for i in self.state.clouds if i not in self._clouds]
 
     def _apply_point_size(self) -> None:
         size = self._size()
@@ -343,9 +393,44 @@ class MapViewer:
             return
         with client.atomic():
             client.camera.position, client.camera.look_at, client.camera.up_direction = view
+        self._given_views[client.client_id] = (np.array(view[0], np.float64), np.array(view[1], np.float64))
+
+    def reframe_unmoved(self) -> None:
+        """Give the view that frames the map (:func:`~sl4slam.viewer.scene.overview`) to every open
+        browser whose camera is still where this viewer put it (to within 1e-3 of the viewing
+        distance); browsers whose camera was moved keep their view."""
+        with self.lock:
+            view = overview(self.state)
+            if view is None:
+                return
+            for client_id, client in self.server.get_clients().items():
+                given = self._given_views.get(client_id)
+                if given is None:
+                    continue
+                position, look_at = given
+                tolerance = 1e-3 * max(float(np.linalg.norm(position - look_at)), 1e-9)
+                try:
+                    current = np.asarray(client.camera.position), np.asarray(client.camera.look_at)
+                except AssertionError:  # the browser has not reported a camera yet
+                    continue
+                if max(np.abs(current[0] - position).max(), np.abs(current[1] - look_at).max()) > tolerance:
+                    continue
+                with client.atomic():
+                    client.camera.position, client.camera.look_at, client.camera.up_direction = view
+                self._given_views[client_id] = (np.array(view[0], np.float64), np.array(view[1], np.float64))
+
+    def on_close(self, callback) -> None:
+        """Call ``callback()`` when the viewer closes (before its server stops)."""
+        self._close_callbacks.append(callback)
 
     def close(self) -> None:
-        """Stop the server (once; later calls do nothing)."""
-        if not self._closed:
+        """Run the close callbacks (:meth:`on_close`), then stop the server (once; later calls do
+        nothing). ``closed`` is set under ``lock``: code that draws under ``lock`` after checking
+        ``closed`` never draws on a stopped server."""
+        with self.lock:
+            if self._closed:
+                return
             self._closed = True
-            self.server.stop()
+        for callback in self._close_callbacks:
+            callback()
+        self.server.stop()

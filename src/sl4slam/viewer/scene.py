@@ -330,10 +330,26 @@ def gt_in_estimate_frame(timestamps: np.ndarray, T_world_cam: np.ndarray, gt_tim
 
 
 @dataclass
+class MapTotals:
+    """The whole map's numbers in the control panel.
+
+    Attributes:
+        shown: points sent to the browser.
+        full: confident points before decimation.
+        confidence: whether the points carry a per-pixel confidence (the confidence slider works).
+    """
+
+    shown: int
+    full: int
+    confidence: bool
+
+
+@dataclass
 class MapState:
     """Everything drawn, as arrays; the viewer server mirrors it into the browser.
 
-    ``version`` counts changes per part so the server resends only what changed.
+    ``totals``: the whole map's numbers while its clouds are still being read (the panel shows them
+    before the first cloud); ``None`` counts them from the clouds (:meth:`counted_totals`).
     """
 
     clouds: dict[int, SubmapCloud] = field(default_factory=dict)
@@ -347,9 +363,15 @@ class MapState:
     loop_segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
     gt_positions: np.ndarray | None = None
     summary_markdown: str = ""
+    totals: MapTotals | None = None
 
     def total_points(self) -> int:
         return int(sum(len(c) for c in self.clouds.values()))
+
+    def counted_totals(self) -> MapTotals:
+        """The panel's numbers counted from the clouds in the state."""
+        return MapTotals(self.total_points(), int(sum(c.full_count for c in self.clouds.values())),
+                         self.has_confidence())
 
     def confidence_range(self) -> tuple[float, float]:
         values = [c.confidence for c in self.clouds.values() if len(c)]

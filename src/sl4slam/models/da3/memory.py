@@ -25,9 +25,9 @@ from __future__ import annotations
 
 import functools
 import json
-from dataclasses import dataclass
 
-from ...errors import UserError
+from .. import memory
+from ..memory import GIB, MemoryPlan, PeakEstimate, submap_too_large  # noqa: F401  (GIB: part of this module's API)
 from .config import DA3Config
 
 KEPT_WIDTHS = 10.0
@@ -35,7 +35,6 @@ BACKBONE_WIDTHS = 16.0
 HEAD_IMAGE_MAPS = 1.5
 HEAD_FINE_MAPS = 3.3
 CPU_RUNTIME_BYTES = 512 * 2**20
-GIB = 2**30
 
 
 @functools.lru_cache(maxsize=16)
@@ -63,29 +62,12 @@ def estimate_peak_bytes(config: DA3Config, frames: int, height: int, width: int,
     return int(runtime + _parameter_bytes(config.to_json()) + kept + max(backbone, chunk * per_frame_head) + outputs)
 
 
-@dataclass(frozen=True)
-class MemoryPlan:
-    """``head_chunk_frames`` decoded at once, and the estimated peak with it."""
-
-    head_chunk_frames: int
-    estimated_peak_bytes: int
-
-
 def largest_fitting_frames(config: DA3Config, budget_bytes: int, height: int, width: int,
                            half_precision: bool = False, device_type: str = "cpu", limit: int = 4096,
                            rays: bool = False) -> int:
     """Largest frame count whose forward (head one frame at a time) fits ``budget_bytes`` (0: none)."""
-    def fits(frames: int) -> bool:
-        peak = estimate_peak_bytes(config, frames, height, width, 1, half_precision, device_type, rays)
-        return peak <= budget_bytes
-
-    if not fits(1):
-        return 0
-    low, high = 1, limit
-    while low < high:
-        middle = (low + high + 1) // 2
-        low, high = (middle, high) if fits(middle) else (low, middle - 1)
-    return low
+    return memory.largest_fitting_frames(_peak(config, height, width, half_precision, device_type, rays),
+                                         budget_bytes, limit)
 
 
 def plan_memory(config: DA3Config, budget_gb: float, frames: int, height: int, width: int, max_chunk: int = 8,
@@ -95,13 +77,18 @@ def plan_memory(config: DA3Config, budget_gb: float, frames: int, height: int, w
     Raises:
         UserError: not even one frame at a time fits; names the largest submap that does.
     """
-    budget = int(budget_gb * GIB)
-    for chunk in range(min(max_chunk, frames), 0, -1):
-        peak = estimate_peak_bytes(config, frames, height, width, chunk, half_precision, device_type, rays)
-        if peak <= budget:
-            return MemoryPlan(chunk, peak)
-    need = estimate_peak_bytes(config, frames, height, width, 1, half_precision, device_type, rays)
-    largest = largest_fitting_frames(config, budget, height, width, half_precision, device_type, rays=rays)
-    raise UserError(f"a submap of {frames} frames at {width}x{height} needs about {need / GIB:.1f} GiB with Depth "
-                    f"Anything 3 but --max-memory is {budget_gb:g} GiB; the largest submap that fits is {largest} "
-                    "frames: lower --submap-size, raise --max-memory, or use a smaller model size")
+    def refuse(needed: int, largest: int) -> str:
+        return submap_too_large(frames, height, width, needed, largest, needs="with Depth Anything 3",
+                                budget=f"--max-memory is {budget_gb:g}",
+                                advice="lower --submap-size, raise --max-memory, or use a smaller model size")
+
+    return memory.plan_memory(_peak(config, height, width, half_precision, device_type, rays), budget_gb, frames,
+                              max_chunk, refuse)
+
+
+def _peak(config: DA3Config, height: int, width: int, half_precision: bool, device_type: str,
+          rays: bool) -> PeakEstimate:
+    def peak(frames: int, head_chunk: int) -> int:
+        return estimate_peak_bytes(config, frames, height, width, head_chunk, half_precision, device_type, rays)
+
+    return peak

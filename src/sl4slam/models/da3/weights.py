@@ -26,15 +26,17 @@ from __future__ import annotations
 import json
 import logging
 import math
-import re
 from pathlib import Path
 
 import torch
 
 from ...errors import UserError
+from .. import loading
 from ..checkpoint import describe_checkpoint, pass_again
 from ..checkpoint import read_checkpoint as read_weights_file
 from ..hub import WeightsSource, hub_offline, hub_reachable, is_hub_id, resolve_weights
+from ..loading import block_count, block_indices, embedded_config, ready_for_inference
+from ..precision import resolve_mode
 from .backbone import swiglu_hidden_features
 from .config import ARCHITECTURES, GS_HEAD_PREFIXES, RELEASED, SIZES, DA3Config, ReleasedSize, released
 from .head import tied_norm_keys
@@ -47,7 +49,9 @@ CHECKPOINT_PREFIX = "model."
 CONFIG_FILENAME = "config.json"
 WEIGHTS_FILENAME = "model.safetensors"
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")
-_HALF = {"bf16": torch.bfloat16, "fp16": torch.float16}
+#: Autocast dtype of the backbone for each mode (``None``: float32, no autocast).
+AUTOCAST_DTYPES: dict[str, torch.dtype | None] = {"fp32": None, "float32": None, "bf16": torch.bfloat16,
+                                                  "fp16": torch.float16}
 
 
 def weights_source(size: str) -> WeightsSource:
@@ -112,16 +116,6 @@ def describe(state_dict: dict) -> str:
     return describe_checkpoint(state_dict) if holds.startswith("weights of an unknown model") else holds
 
 
-def _block_indices(state_dict: dict, prefix: str, suffix: str = "") -> list[int]:
-    pattern = re.compile(re.escape(prefix) + r"(\d+)\." + re.escape(suffix))
-    return sorted({int(m.group(1)) for key in state_dict if (m := pattern.match(key))})
-
-
-def _count(state_dict: dict, prefix: str) -> int:
-    indices = _block_indices(state_dict, prefix)
-    return indices[-1] + 1 if indices else 0
-
-
 def _reference_net(reference: dict | None) -> dict:
     """The ``net`` section of a release's ``config.json`` (``{"config": {"net": ...}}`` or top level)."""
     if not reference:
@@ -153,8 +147,8 @@ def infer_config(state_dict: dict[str, torch.Tensor], reference: dict | None = N
         raise UserError(f"the weights hold {describe(state_dict)}, "
                         "not a Depth Anything 3 any-view checkpoint") from None
     prefix = "backbone.pretrained.blocks."
-    depth = _count(state_dict, prefix)
-    normed = _block_indices(state_dict, prefix, "attn.q_norm.weight")
+    depth = block_count(state_dict, prefix)
+    normed = block_indices(state_dict, prefix, "attn.q_norm.weight")
     swiglu = f"{prefix}0.mlp.w12.weight" in state_dict
     if swiglu:
         hidden = int(state_dict[f"{prefix}0.mlp.w12.weight"].shape[0]) // 2
@@ -190,9 +184,9 @@ def infer_config(state_dict: dict[str, torch.Tensor], reference: dict | None = N
         embed_dim=embed_dim, depth=depth, num_heads=num_heads, mlp_ratio=mlp_ratio, ffn="swiglu" if swiglu else "mlp",
         img_size=grid * patch_size, patch_size=patch_size, qknorm_start=qknorm_start,
         cat_token=token_dim == 2 * embed_dim, head_features=head_features, head_out_channels=out_channels,
-        head_output_dim=output_dim, head_aux_levels=_count(state_dict, "head.scratch.output_conv1_aux."),
-        head_aux_convs=_count(state_dict, "head.scratch.output_conv1_aux.0."),
-        with_camera=with_camera, cam_enc_depth=_count(state_dict, "cam_enc.trunk.") if with_camera else 4,
+        head_output_dim=output_dim, head_aux_levels=block_count(state_dict, "head.scratch.output_conv1_aux."),
+        head_aux_convs=block_count(state_dict, "head.scratch.output_conv1_aux.0."),
+        with_camera=with_camera, cam_enc_depth=block_count(state_dict, "cam_enc.trunk.") if with_camera else 4,
         **layout,
     )
 
@@ -202,9 +196,7 @@ def read_checkpoint(path: str | Path, what: str = "Depth Anything 3", fix: str |
     """Prefix-free state dict and embedded :class:`DA3Config` (or ``None``) of a weights file, on CPU."""
     fix = fix or f"delete it and fetch it again, then {pass_again()}"
     state_dict, metadata = read_weights_file(path, what, fix)
-    embedded = metadata.get(CONFIG_METADATA_KEY)
-    if isinstance(embedded, str):
-        embedded = json.loads(embedded)
+    embedded = embedded_config(metadata, CONFIG_METADATA_KEY)
     return strip_prefix(state_dict), DA3Config.from_dict(embedded) if embedded else None
 
 
@@ -247,17 +239,7 @@ def load_state_dict_into(model: DepthAnything3, state_dict: dict[str, torch.Tens
             alias = "head.scratch." + alias
             if stored in kept and alias not in kept:
                 kept[alias] = kept[stored]
-    expected = set(model.state_dict().keys())
-    missing = sorted(expected - set(kept))
-    unexpected = sorted(set(kept) - expected)
-    if missing or unexpected:
-        raise UserError(f"checkpoint does not match the Depth Anything 3 model: {len(missing)} missing keys "
-                        f"{missing[:5]}, {len(unexpected)} unexpected keys {unexpected[:5]}")
-    try:
-        model.load_state_dict(kept, strict=True, assign=assign)
-    except RuntimeError as exc:
-        raise UserError(f"checkpoint shapes do not match the Depth Anything 3 model: "
-                        f"{str(exc).splitlines()[-1].strip()}") from None
+    loading.load_state_dict_into(model, kept, "Depth Anything 3", assign=assign)
 
 
 def resolve_precision(dtype: str | torch.dtype | None, device: torch.device) -> torch.dtype | None:
@@ -266,16 +248,8 @@ def resolve_precision(dtype: str | torch.dtype | None, device: torch.device) -> 
     float32 on an AVX2 CPU), bf16 on CUDA where supported, else fp16 (as the authors' API)."""
     if isinstance(dtype, torch.dtype):
         return None if dtype == torch.float32 else dtype
-    mode = (dtype or "auto").lower()
-    if mode == "auto":
-        if device.type != "cuda":
-            return None
-        mode = "bf16" if torch.cuda.is_bf16_supported() else "fp16"
-    if mode in ("fp32", "float32"):
-        return None
-    if mode not in _HALF:
-        raise UserError(f"unknown Depth Anything 3 dtype {dtype!r}: use {', '.join(PRECISIONS)}")
-    return _HALF[mode]
+    return resolve_mode((dtype or "auto").lower(), device, AUTOCAST_DTYPES,
+                        f"unknown Depth Anything 3 dtype {dtype!r}: use {', '.join(PRECISIONS)}")
 
 
 def load_da3(weights: str | None = None, size: str = "small", device: torch.device | str = "cpu",
@@ -310,10 +284,8 @@ def load_da3(weights: str | None = None, size: str = "small", device: torch.devi
     load_state_dict_into(model, state_dict, assign=True, skipped_prefixes=GS_HEAD_PREFIXES)
     del state_dict
     device = torch.device(device)
-    model.float().to(device).eval()
+    ready_for_inference(model, device, torch.float32)
     model.autocast_dtype = resolve_precision(dtype, device)
-    for parameter in model.parameters():
-        parameter.requires_grad_(False)
     logger.info("loaded %s weights from %s", source.what, path)
     return model
 
@@ -322,22 +294,16 @@ def convert_checkpoint(src: str | Path | None, dst: str | Path, size: str = "sma
     """Copy a DA3 checkpoint (file or hub id; ``None``: the size's release) to ``dst`` ``.safetensors`` with
     its configuration embedded (no config.json needed afterwards), optionally in bf16 / fp16 (halves the
     file; :func:`load_da3` computes in float32 all the same). Every key is kept, ``gs_head.*`` included."""
-    targets = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
-    if dtype.lower() not in targets:
-        raise UserError(f"unknown dtype {dtype!r}; use fp32, bf16 or fp16")
-    dst = Path(dst)
-    if dst.suffix != ".safetensors":
-        raise UserError(f"conversion output must end in .safetensors, got {dst}")
-    release = released(size)
-    source = WEIGHTS_SOURCES[release.size]
-    weights = str(src) if src is not None else release.repo_id
-    path = resolve_weights(weights, source=source)
-    state_dict, embedded = read_checkpoint(path, source.what, source.refetch())
-    require_da3(state_dict, path, None if embedded else release)
-    config = embedded or infer_config(state_dict, find_reference_config(weights, path))
-    target = targets[dtype.lower()]
-    converted = {k: v.to(target) if v.is_floating_point() else v for k, v in state_dict.items()}
-    return save_checkpoint(converted, dst, config)
+    def read() -> tuple[dict[str, torch.Tensor], DA3Config]:
+        release = released(size)
+        source = WEIGHTS_SOURCES[release.size]
+        weights = str(src) if src is not None else release.repo_id
+        path = resolve_weights(weights, source=source)
+        state_dict, embedded = read_checkpoint(path, source.what, source.refetch())
+        require_da3(state_dict, path, None if embedded else release)
+        return state_dict, embedded or infer_config(state_dict, find_reference_config(weights, path))
+
+    return loading.convert_checkpoint(read, dst, dtype, save_checkpoint)
 
 
 def save_checkpoint(state_dict: dict[str, torch.Tensor], path: str | Path, config: DA3Config | None = None,

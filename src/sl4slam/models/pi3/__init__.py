@@ -6,6 +6,7 @@ checkpoints ``yyfz233/Pi3`` and ``yyfz233/Pi3X`` (weights CC BY-NC 4.0).
 - :mod:`.encoder`, :mod:`.blocks`, :mod:`.heads`, :mod:`.prope`: the parts.
 - :mod:`.preprocess`: the authors' image resizing (pixel budget, Lanczos), without PIL.
 - :mod:`.cameras`: outputs -> depth, confidence, extrinsics and recovered intrinsics.
+- :mod:`.memory`: the peak-memory estimate of a forward and the head chunk that fits a budget.
 - :mod:`.weights`: :func:`load_pi3`, :data:`PI3_WEIGHTS`, :data:`PI3X_WEIGHTS`, the licence.
 """
 

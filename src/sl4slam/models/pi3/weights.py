@@ -16,19 +16,20 @@ every attention of the released models has 64 channels per head, so that is assu
 
 from __future__ import annotations
 
-import json
 import logging
 import math
-import re
 from pathlib import Path
 from typing import Mapping
 
 import torch
 
 from ...errors import UserError
+from .. import loading
 from ..checkpoint import describe_checkpoint, pass_again, write_checkpoint
 from ..checkpoint import read_checkpoint as read_weights_file
 from ..hub import WeightsSource, resolve_weights
+from ..loading import block_count, embedded_config, ready_for_inference
+from ..precision import weight_dtype
 from .model import VARIANTS, Pi3, Pi3Config, Pi3X, build_pi3, parameter_count
 
 logger = logging.getLogger(__name__)
@@ -45,8 +46,6 @@ condition branches (depth encoder 304 M, pose injection 63 M, ray embedding 6 k)
 CONFIG_METADATA_KEY = "pi3_config"
 HEAD_DIM = 64
 """Channels per attention head of every attention of the released models."""
-_DTYPES = {"fp32": torch.float32, "float32": torch.float32, "bf16": torch.bfloat16, "bfloat16": torch.bfloat16,
-           "fp16": torch.float16, "float16": torch.float16}
 
 
 def checkpoint_variant(state_dict: Mapping) -> str | None:
@@ -75,22 +74,13 @@ def read_checkpoint(path: str | Path, variant: str = "pi3") -> tuple[dict[str, t
     (``sl4slam.models.checkpoint.read_checkpoint``: one line for a cut, corrupt or unsafe file)."""
     source = WEIGHTS_SOURCES[_check_variant(variant)]
     state_dict, metadata = read_weights_file(path, source.what, source.refetch())
-    config = metadata.get(CONFIG_METADATA_KEY)
-    if isinstance(config, str):
-        config = json.loads(config)
-    return state_dict, config
+    return state_dict, embedded_config(metadata, CONFIG_METADATA_KEY)
 
 
 def _check_variant(variant: str) -> str:
     if variant not in VARIANTS:
         raise UserError(f"unknown π³ variant '{variant}': use one of {', '.join(VARIANTS)}")
     return variant
-
-
-def _count(keys, prefix: str) -> int:
-    pattern = re.compile(re.escape(prefix) + r"(\d+)\.")
-    indices = {int(m.group(1)) for key in keys if (m := pattern.match(key))}
-    return max(indices) + 1 if indices else 0
 
 
 def infer_config(shapes: Mapping[str, torch.Tensor | tuple | list]) -> Pi3Config:
@@ -119,15 +109,15 @@ def infer_config(shapes: Mapping[str, torch.Tensor | tuple | list]) -> Pi3Config
             img_size=math.isqrt(shape("encoder.pos_embed")[1] - 1) * patch,
             patch_size=patch,
             encoder_dim=encoder_dim,
-            encoder_depth=_count(keys, "encoder.blocks."),
+            encoder_depth=block_count(keys, "encoder.blocks."),
             encoder_heads=max(1, encoder_dim // HEAD_DIM),
             encoder_registers=shape("encoder.register_tokens")[1],
             decoder_dim=decoder_dim,
-            decoder_depth=_count(keys, "decoder."),
+            decoder_depth=block_count(keys, "decoder."),
             decoder_heads=decoder_dim // shape("decoder.0.attn.q_norm.weight")[0],
             decoder_registers=shape("register_token")[2],
             head_decoder_dim=head_dim,
-            head_decoder_depth=_count(keys, "point_decoder.blocks."),
+            head_decoder_depth=block_count(keys, "point_decoder.blocks."),
             head_decoder_heads=max(1, head_dim // HEAD_DIM),
             point_features=shape("point_decoder.linear_out.weight")[0],
             camera_features=shape("camera_decoder.linear_out.weight")[0],
@@ -140,9 +130,9 @@ def infer_config(shapes: Mapping[str, torch.Tensor | tuple | list]) -> Pi3Config
 
 
 def _infer_pi3x(config: Pi3Config, shape, keys) -> None:
-    stages = _count(keys, "point_head.upsample_blocks.")
+    stages = block_count(keys, "point_head.upsample_blocks.")
     config.conv_upsample_dims = [shape(f"point_head.upsample_blocks.{i}.0.0.weight")[1] for i in range(stages)]
-    config.conv_res_blocks = _count(keys, "point_head.upsample_blocks.0.") - 1
+    config.conv_res_blocks = block_count(keys, "point_head.upsample_blocks.0.") - 1
     if config.conv_res_blocks:
         config.conv_hidden_ratio = shape("point_head.upsample_blocks.0.1.layers.2.weight")[0] // config.conv_upsample_dims[0]
     if "point_head.output_block.0.2.weight" not in keys:
@@ -150,12 +140,12 @@ def _infer_pi3x(config: Pi3Config, shape, keys) -> None:
     config.conv_last_channels = shape("point_head.output_block.0.0.weight")[0]
     config.conv_last_kernel = shape("point_head.output_block.0.2.weight")[-1]
     config.metric_dim = shape("metric_decoder.projects_x.weight")[0]
-    config.metric_depth = _count(keys, "metric_decoder.blocks.")
+    config.metric_depth = block_count(keys, "metric_decoder.blocks.")
     config.metric_heads = max(1, config.metric_dim // HEAD_DIM)
     config.metric_features = shape("metric_decoder.linear_out.weight")[0]
     config.depth_condition = "depth_emb" in keys
     config.ray_condition = "ray_embed.proj.weight" in keys
-    config.pose_inject_blocks = _count(keys, "pose_inject_blk.")
+    config.pose_inject_blocks = block_count(keys, "pose_inject_blk.")
 
 
 def load_state_dict_into(model: torch.nn.Module, state_dict: Mapping[str, torch.Tensor], assign: bool = False) -> None:
@@ -164,25 +154,11 @@ def load_state_dict_into(model: torch.nn.Module, state_dict: Mapping[str, torch.
     Raises:
         UserError: listing missing or unexpected keys, or the first shape mismatch.
     """
-    expected = set(model.state_dict().keys())
-    missing = sorted(expected - set(state_dict))
-    unexpected = sorted(set(state_dict) - expected)
-    if missing or unexpected:
-        raise UserError(f"checkpoint does not match the {model.config.variant} model: {len(missing)} missing keys "
-                        f"{missing[:5]}, {len(unexpected)} unexpected keys {unexpected[:5]}")
-    try:
-        model.load_state_dict(dict(state_dict), strict=True, assign=assign)
-    except RuntimeError as exc:
-        raise UserError(f"checkpoint shapes do not match the {model.config.variant} model: "
-                        f"{str(exc).splitlines()[-1].strip()}") from None
+    loading.load_state_dict_into(model, state_dict, model.config.variant, assign=assign)
 
 
-def resolve_dtype(dtype: torch.dtype | str | None) -> torch.dtype | None:
-    if isinstance(dtype, str):
-        if dtype.lower() not in _DTYPES:
-            raise UserError(f"unknown dtype '{dtype}': use fp32, bf16 or fp16")
-        return _DTYPES[dtype.lower()]
-    return dtype
+#: The weight dtype of ``load_pi3``'s ``dtype`` (:func:`sl4slam.models.precision.weight_dtype`).
+resolve_dtype = weight_dtype
 
 
 def load_pi3(
@@ -228,12 +204,7 @@ def load_pi3(
     del state_dict
     if isinstance(model, Pi3X):
         model.drop_condition_branches(keep=conditions)
-    dtype = resolve_dtype(dtype)
-    if dtype is not None:
-        model.to(dtype=dtype)
-    model.to(device).eval()
-    for parameter in model.parameters():
-        parameter.requires_grad_(False)
+    ready_for_inference(model, device, weight_dtype(dtype))
     logger.info("loaded %s weights from %s", source.what, path)
     return model
 
@@ -246,17 +217,14 @@ def save_checkpoint(state_dict: Mapping[str, torch.Tensor], path: str | Path, co
 def convert_checkpoint(src: str, dst: str | Path, variant: str = "pi3", dtype: str = "fp32") -> Path:
     """Copy a π³ / Pi3X checkpoint (file or hub id) to ``dst`` ``.safetensors``, floating tensors cast
     to ``dtype``, with its config (embedded or inferred) in the metadata."""
-    target = resolve_dtype(dtype)
-    dst = Path(dst)
-    if dst.suffix != ".safetensors":
-        raise UserError(f"conversion output must end in .safetensors, got {dst}")
-    source = WEIGHTS_SOURCES[_check_variant(variant)]
-    path = resolve_weights(src, source=source)
-    state_dict, embedded = read_checkpoint(path, variant)
-    require_variant(state_dict, variant, path)
-    config = Pi3Config.from_dict(embedded) if embedded else infer_config(state_dict)
-    converted = {k: v.to(target) if v.is_floating_point() else v for k, v in state_dict.items()}
-    return save_checkpoint(converted, dst, config)
+    def read() -> tuple[dict[str, torch.Tensor], Pi3Config]:
+        source = WEIGHTS_SOURCES[_check_variant(variant)]
+        path = resolve_weights(src, source=source)
+        state_dict, embedded = read_checkpoint(path, variant)
+        require_variant(state_dict, variant, path)
+        return state_dict, Pi3Config.from_dict(embedded) if embedded else infer_config(state_dict)
+
+    return loading.convert_checkpoint(read, dst, dtype, save_checkpoint)
 
 
 def full_size_parameters(variant: str) -> int:

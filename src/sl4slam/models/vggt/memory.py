@@ -23,11 +23,11 @@ from __future__ import annotations
 
 import functools
 import json
-from dataclasses import dataclass
 
 import torch
 
-from ...errors import UserError
+from .. import memory
+from ..memory import GIB, MemoryPlan, PeakEstimate, submap_too_large  # noqa: F401  (GIB: part of this module's API)
 from .model import VGGT, VGGTModelConfig
 from .precision import Precision
 
@@ -39,7 +39,6 @@ HEAD_MAPS = 4.0
 CPU_RUNTIME_BYTES = 700 * 2**20
 #: Bytes per int8 linear weight as held by the quantized kernels (packed copy, offsets; measured).
 INT8_WEIGHT_BYTES = 1.25
-GIB = 2**30
 
 
 def weight_bytes(model_config: VGGTModelConfig, precision: Precision, heads: tuple[str, ...] = ("camera", "depth")) -> int:
@@ -95,34 +94,13 @@ def estimate_peak_bytes(
     return int(runtime + weight_bytes(model_config, precision, heads) + frames * per_frame_aggregator + head_peak + outputs)
 
 
-@dataclass(frozen=True)
-class MemoryPlan:
-    """Chunk size chosen for a budget.
-
-    Attributes:
-        head_chunk_frames: frames the dense heads decode at once.
-        estimated_peak_bytes: :func:`estimate_peak_bytes` with that chunk.
-    """
-
-    head_chunk_frames: int
-    estimated_peak_bytes: int
-
-
 def largest_fitting_frames(
     model_config: VGGTModelConfig, precision: Precision, budget_bytes: int, height: int, width: int,
     device_type: str = "cpu", heads: tuple[str, ...] = ("camera", "depth"), limit: int = 4096,
 ) -> int:
     """Largest frame count whose forward (dense heads one frame at a time) fits ``budget_bytes`` (0: none)."""
-    def fits(frames: int) -> bool:
-        return estimate_peak_bytes(model_config, precision, frames, height, width, 1, device_type, heads) <= budget_bytes
-
-    if not fits(1):
-        return 0
-    low, high = 1, limit
-    while low < high:  # the estimate grows with the frame count: bisect
-        middle = (low + high + 1) // 2
-        low, high = (middle, high) if fits(middle) else (low, middle - 1)
-    return low
+    return memory.largest_fitting_frames(
+        _peak(model_config, precision, height, width, device_type, heads), budget_bytes, limit)
 
 
 def plan_memory(
@@ -144,16 +122,21 @@ def plan_memory(
     Raises:
         UserError: not even one frame at a time fits; names the largest submap that does.
     """
-    budget = int(budget_gb * GIB)
-    for chunk in range(min(max_chunk, frames), 0, -1):
-        peak = estimate_peak_bytes(model_config, precision, frames, height, width, chunk, device_type, heads)
-        if peak <= budget:
-            return MemoryPlan(chunk, peak)
-    need = estimate_peak_bytes(model_config, precision, frames, height, width, 1, device_type, heads)
-    largest = largest_fitting_frames(model_config, precision, budget, height, width, device_type, heads)
-    raise UserError(
-        f"a submap of {frames} frames at {width}x{height} needs about {need / GIB:.1f} GiB in {precision.mode} "
-        f"but {budget_source or '--max-memory is'} {budget_gb:.3g} GiB; the largest submap that fits is {largest} frames "
-        f"(--submap-size {max(1, largest - 2)} with the shared and a loop frame): lower --submap-size, "
-        f"{'raise --max-memory, ' if not budget_source else ''}or use a smaller --dtype (bf16, int8 on CPU)"
-    )
+    def refuse(needed: int, largest: int) -> str:
+        return submap_too_large(
+            frames, height, width, needed, largest, needs=f"in {precision.mode}",
+            budget=f"{budget_source or '--max-memory is'} {budget_gb:.3g}",
+            fitting=f" (--submap-size {max(1, largest - 2)} with the shared and a loop frame)",
+            advice=f"lower --submap-size, {'raise --max-memory, ' if not budget_source else ''}"
+                   "or use a smaller --dtype (bf16, int8 on CPU)")
+
+    return memory.plan_memory(_peak(model_config, precision, height, width, device_type, heads),
+                              budget_gb, frames, max_chunk, refuse)
+
+
+def _peak(model_config: VGGTModelConfig, precision: Precision, height: int, width: int, device_type: str,
+          heads: tuple[str, ...]) -> PeakEstimate:
+    def peak(frames: int, head_chunk: int) -> int:
+        return estimate_peak_bytes(model_config, precision, frames, height, width, head_chunk, device_type, heads)
+
+    return peak

@@ -23,8 +23,9 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from ..precision import PrecisionError, resolve_mode
+
 MODES = ("fp32", "bf16", "fp16", "int8")
-_HALF = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
 @dataclass(frozen=True)
@@ -47,26 +48,28 @@ class Precision:
         return 2 if self.autocast is not None else 4
 
 
+#: What each of :data:`MODES` means for VGGT.
+PRECISIONS: dict[str, Precision] = {
+    "fp32": Precision("fp32", torch.float32, None),
+    "bf16": Precision("bf16", torch.bfloat16, torch.bfloat16),
+    "fp16": Precision("fp16", torch.float16, torch.float16),
+    "int8": Precision("int8", torch.float32, None),
+}
+
+
 def resolve_precision(mode: str, device: torch.device) -> Precision:
     """``mode`` ("auto" or one of :data:`MODES`) on ``device`` -> :class:`Precision`.
 
-    "auto": bf16 on CUDA GPUs that support it (else fp16), float32 elsewhere.
+    "auto": bf16 on CUDA GPUs that support it (else fp16), float32 elsewhere
+    (:func:`sl4slam.models.precision.auto_mode`).
 
     Raises:
-        ValueError: unknown mode, or int8 on a non-CPU device.
+        PrecisionError (a ``ValueError``): unknown mode, or int8 on a non-CPU device.
     """
-    if mode == "auto":
-        if device.type == "cuda":
-            mode = "bf16" if torch.cuda.is_bf16_supported() else "fp16"
-        else:
-            mode = "fp32"
-    if mode not in MODES:
-        raise ValueError(f"unknown VGGT dtype '{mode}': use auto, " + ", ".join(MODES))
-    if mode == "int8" and device.type != "cpu":
-        raise ValueError("--dtype int8 runs on the CPU only; use bf16 on a GPU")
-    if mode in _HALF:
-        return Precision(mode, _HALF[mode], _HALF[mode])
-    return Precision(mode, torch.float32, None)
+    precision = resolve_mode(mode, device, PRECISIONS, f"unknown VGGT dtype '{mode}': use auto, " + ", ".join(MODES))
+    if precision.mode == "int8" and device.type != "cpu":
+        raise PrecisionError("--dtype int8 runs on the CPU only; use bf16 on a GPU")
+    return precision
 
 
 def quantize_aggregator_int8(model: nn.Module) -> nn.Module:

@@ -15,25 +15,24 @@ aggregator has 24 layers (any other depth needs the embedded config).
 
 from __future__ import annotations
 
-import json
 import logging
 import math
-import re
 from pathlib import Path
 
 import torch
 
 from ...errors import UserError
+from .. import loading
 from ..checkpoint import describe_checkpoint, pass_again, write_checkpoint
 from ..checkpoint import read_checkpoint as read_weights_file
 from ..hub import DEFAULT_HUB_ID, VGGT_WEIGHTS, resolve_weights
+from ..loading import block_count, embedded_config, ready_for_inference
+from ..precision import weight_dtype
 from .model import SKIPPED_PREFIXES, VGGT, VGGTModelConfig
 
 logger = logging.getLogger(__name__)
 
 CONFIG_METADATA_KEY = "vggt_config"
-_DTYPES = {"fp32": torch.float32, "float32": torch.float32, "bf16": torch.bfloat16, "bfloat16": torch.bfloat16,
-           "fp16": torch.float16, "float16": torch.float16}
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict | None]:
@@ -44,10 +43,7 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict | N
     single copy of the weights.
     """
     state_dict, metadata = read_weights_file(path, VGGT_WEIGHTS.what, VGGT_WEIGHTS.refetch())
-    config = metadata.get(CONFIG_METADATA_KEY)
-    if isinstance(config, str):
-        config = json.loads(config)
-    return state_dict, config
+    return state_dict, embedded_config(metadata, CONFIG_METADATA_KEY)
 
 
 def require_vggt(state_dict: dict, path: str | Path) -> None:
@@ -57,18 +53,12 @@ def require_vggt(state_dict: dict, path: str | Path) -> None:
                         f"{pass_again(it='a VGGT checkpoint', value='', default=DEFAULT_HUB_ID)}")
 
 
-def _block_count(state_dict: dict, prefix: str) -> int:
-    pattern = re.compile(re.escape(prefix) + r"(\d+)\.")
-    indices = {int(m.group(1)) for key in state_dict if (m := pattern.match(key))}
-    return max(indices) + 1 if indices else 0
-
-
 def infer_config(state_dict: dict[str, torch.Tensor]) -> VGGTModelConfig:
     """Model sizes from checkpoint shapes (see the module docstring for the one assumption)."""
     try:
         embed_dim = state_dict["aggregator.camera_token"].shape[-1]
         num_register_tokens = state_dict["aggregator.register_token"].shape[2]
-        depth = _block_count(state_dict, "aggregator.frame_blocks.")
+        depth = block_count(state_dict, "aggregator.frame_blocks.")
         head_dim = state_dict["aggregator.frame_blocks.0.attn.q_norm.weight"].shape[0]
         patch_size = state_dict["aggregator.patch_embed.patch_embed.proj.weight"].shape[-1]
         grid = math.isqrt(state_dict["aggregator.patch_embed.pos_embed"].shape[1] - 1)
@@ -93,10 +83,10 @@ def infer_config(state_dict: dict[str, torch.Tensor]) -> VGGTModelConfig:
         num_heads=num_heads,
         mlp_ratio=mlp_hidden / embed_dim,
         num_register_tokens=num_register_tokens,
-        patch_embed_depth=_block_count(state_dict, "aggregator.patch_embed.blocks."),
+        patch_embed_depth=block_count(state_dict, "aggregator.patch_embed.blocks."),
         # Head counts are not visible in the shapes; VGGT uses the aggregator's for all transformers.
         patch_embed_num_heads=num_heads,
-        camera_trunk_depth=_block_count(state_dict, "camera_head.trunk."),
+        camera_trunk_depth=block_count(state_dict, "camera_head.trunk."),
         camera_num_heads=num_heads,
         dpt_features=state_dict[f"{dense_prefix}scratch.layer1_rn.weight"].shape[0] if has_dense else defaults.dpt_features,
         dpt_out_channels=[state_dict[f"{dense_prefix}projects.{i}.weight"].shape[0] for i in range(4)]
@@ -116,18 +106,7 @@ def load_state_dict_into(model: VGGT, state_dict: dict[str, torch.Tensor], assig
         UserError: listing missing or unexpected keys (or shape mismatches).
     """
     kept = {k: v for k, v in state_dict.items() if not k.startswith(SKIPPED_PREFIXES)}
-    expected = set(model.state_dict().keys())
-    missing = sorted(expected - set(kept))
-    unexpected = sorted(set(kept) - expected)
-    if missing or unexpected:
-        raise UserError(
-            f"checkpoint does not match the VGGT model: {len(missing)} missing keys {missing[:5]}, "
-            f"{len(unexpected)} unexpected keys {unexpected[:5]}"
-        )
-    try:
-        model.load_state_dict(kept, strict=True, assign=assign)
-    except RuntimeError as exc:
-        raise UserError(f"checkpoint shapes do not match the VGGT model: {str(exc).splitlines()[-1].strip()}") from None
+    loading.load_state_dict_into(model, kept, "VGGT", assign=assign)
 
 
 def load_vggt(
@@ -161,14 +140,7 @@ def load_vggt(
     # assign=True adopts the checkpoint's tensors as parameters instead of copying into new ones.
     load_state_dict_into(model, state_dict, assign=True)
     del state_dict
-    if isinstance(dtype, str):
-        dtype = _DTYPES[dtype.lower()]
-    if dtype is not None:
-        model.to(dtype=dtype)
-    model.to(device)
-    model.eval()
-    for parameter in model.parameters():
-        parameter.requires_grad_(False)
+    ready_for_inference(model, device, weight_dtype(dtype))
     logger.info("loaded VGGT weights from %s", path)
     return model
 
@@ -184,15 +156,10 @@ def convert_checkpoint(src: str | Path, dst: str | Path, dtype: str = "fp32") ->
     Every key is kept (including ``track_head.*``); floating tensors are cast to ``dtype``; the
     model config (embedded or inferred) is written into the metadata.
     """
-    if dtype.lower() not in _DTYPES:
-        raise UserError(f"unknown dtype {dtype!r}; use fp32, bf16 or fp16")
-    dst = Path(dst)
-    if dst.suffix != ".safetensors":
-        raise UserError(f"conversion output must end in .safetensors, got {dst}")
-    target = _DTYPES[dtype.lower()]
-    path = resolve_weights(str(src))
-    state_dict, embedded = read_checkpoint(path)
-    require_vggt(state_dict, path)
-    config = VGGTModelConfig.from_dict(embedded) if embedded else infer_config(state_dict)
-    converted = {k: v.to(target) if v.is_floating_point() else v for k, v in state_dict.items()}
-    return save_checkpoint(converted, dst, config)
+    def read() -> tuple[dict[str, torch.Tensor], VGGTModelConfig]:
+        path = resolve_weights(str(src))
+        state_dict, embedded = read_checkpoint(path)
+        require_vggt(state_dict, path)
+        return state_dict, VGGTModelConfig.from_dict(embedded) if embedded else infer_config(state_dict)
+
+    return loading.convert_checkpoint(read, dst, dtype, save_checkpoint)

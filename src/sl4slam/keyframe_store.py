@@ -1,0 +1,78 @@
+"""The keyframes a run keeps: each stored compactly (``sl4slam.submap.StoredKeyframe``) in time
+order, found by frame index, with the ground-truth poses the source gave for them."""
+
+from __future__ import annotations
+
+import bisect
+from typing import Sequence
+
+import numpy as np
+
+from .submap import StoredKeyframe
+from .types import Frame
+
+
+class KeyframeStore:
+    """The stored keyframes of a run, in the order they were stored (time order).
+
+    Attributes:
+        keyframes: the stored keyframes (the list itself: readers may hold it while the run grows).
+    """
+
+    def __init__(self) -> None:
+        self.keyframes: list[StoredKeyframe] = []
+        self._by_frame: dict[int, StoredKeyframe] = {}
+        self._ground_truth: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.keyframes)
+
+    def __contains__(self, frame_index: int) -> bool:
+        return frame_index in self._by_frame
+
+    def add(self, keyframe: StoredKeyframe) -> None:
+        """Keep ``keyframe`` (after every keyframe stored so far in time)."""
+        self.keyframes.append(keyframe)
+        self._by_frame[keyframe.frame_index] = keyframe
+
+    def get(self, frame_index: int) -> StoredKeyframe:
+        """The stored keyframe of input frame ``frame_index`` (``KeyError`` when none is stored)."""
+        return self._by_frame[frame_index]
+
+    def note_ground_truth(self, frame: Frame) -> None:
+        """Remember ``frame``'s ground-truth pose ``T_world_cam`` (when the source gave one)."""
+        if frame.T_world_cam is not None:
+            self._ground_truth[frame.index] = np.asarray(frame.T_world_cam, dtype=np.float64)
+
+    def ground_truth(self, keyframes: Sequence[StoredKeyframe]) -> np.ndarray | None:
+        """``(N, 4, 4)`` float64 ground-truth ``T_world_cam`` of ``keyframes``, or ``None`` unless
+        every one has it (and there is at least one)."""
+        if keyframes and all(k.frame_index in self._ground_truth for k in keyframes):
+            return np.stack([self._ground_truth[k.frame_index] for k in keyframes])
+        return None
+
+    def companions(self, frame_index: int, wanted: int) -> list[int]:
+        """Frame indices of up to ``wanted`` keyframes stored with ``frame_index`` in its submap,
+        nearest to it in the video first (ties: the later one): with a loop frame they give the loop
+        several frames to measure it on, all in the same two submaps."""
+        if wanted <= 0:
+            return []
+        keyframes = self.keyframes
+        position = bisect.bisect_left(keyframes, frame_index, key=lambda k: k.frame_index)
+        submap = keyframes[position].submap_id
+        lo, hi = position - 1, position + 1
+
+        def same(p: int) -> bool:
+            return 0 <= p < len(keyframes) and keyframes[p].submap_id == submap
+
+        found: list[int] = []
+        while len(found) < wanted and (same(lo) or same(hi)):
+            gap_lo = frame_index - keyframes[lo].frame_index if same(lo) else np.inf
+            gap_hi = keyframes[hi].frame_index - frame_index if same(hi) else np.inf
+            if gap_hi <= gap_lo:
+                found.append(keyframes[hi].frame_index)
+                hi += 1
+            else:
+                found.append(keyframes[lo].frame_index)
+                lo -= 1
+        return found

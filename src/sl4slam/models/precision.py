@@ -1,0 +1,89 @@
+"""Precision modes: what "auto" means on a device, and a model's table of what each mode means.
+
+A model's ``dtype`` setting names a mode ("auto", "fp32", "bf16", "fp16"; VGGT also "int8"); the
+model decides what a mode means for it (a :class:`torch.dtype` to autocast to, a storage and compute
+pair, ...) in a table that :func:`resolve_mode` looks the mode up in. "auto" is the same rule for
+every model: half precision on a CUDA GPU (bf16 where the GPU runs it, else fp16), float32
+elsewhere; only the test of "runs bf16" can be a model's own (:func:`cuda_bf16_supported` or
+:func:`cuda_native_bf16`).
+
+:func:`weight_dtype` reads the dtype that weights are stored in (loading and converting checkpoints).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Mapping, TypeVar
+
+import torch
+
+from ..errors import UserError
+
+T = TypeVar("T")
+
+#: Names of the weight storage dtypes (any case), as loading and converting checkpoints accept them.
+WEIGHT_DTYPES: dict[str, torch.dtype] = {
+    "fp32": torch.float32, "float32": torch.float32,
+    "bf16": torch.bfloat16, "bfloat16": torch.bfloat16,
+    "fp16": torch.float16, "float16": torch.float16,
+}
+
+
+class PrecisionError(UserError, ValueError):
+    """An unknown precision mode, or one the device cannot run (a ``UserError`` and a ``ValueError``)."""
+
+
+def weight_dtype(dtype: torch.dtype | str | None) -> torch.dtype | None:
+    """The storage dtype named by ``dtype`` (:data:`WEIGHT_DTYPES`, any case); a ``torch.dtype`` or
+    ``None`` (keep the checkpoint's) is returned as it is.
+
+    Raises:
+        UserError: an unknown name.
+    """
+    if isinstance(dtype, str):
+        if dtype.lower() not in WEIGHT_DTYPES:
+            raise UserError(f"unknown dtype {dtype!r}; use fp32, bf16 or fp16")
+        return WEIGHT_DTYPES[dtype.lower()]
+    return dtype
+
+
+def cuda_bf16_supported(device: torch.device) -> bool:
+    """Whether torch runs bfloat16 on the current CUDA device (natively, or emulated on GPUs older
+    than compute capability 8): ``torch.cuda.is_bf16_supported()``."""
+    return torch.cuda.is_bf16_supported()
+
+
+def cuda_native_bf16(device: torch.device) -> bool:
+    """Whether the CUDA ``device`` has native bfloat16 (compute capability 8 or more)."""
+    return torch.cuda.get_device_capability(device)[0] >= 8
+
+
+def auto_mode(device: torch.device, bf16: Callable[[torch.device], bool] = cuda_bf16_supported) -> str:
+    """The mode "auto" stands for on ``device``: "bf16" on a CUDA device where ``bf16(device)``,
+    "fp16" on other CUDA devices, "fp32" on every other device."""
+    if device.type != "cuda":
+        return "fp32"
+    return "bf16" if bf16(device) else "fp16"
+
+
+def resolve_mode(mode: str, device: torch.device, table: Mapping[str, T], unknown: str,
+                 bf16: Callable[[torch.device], bool] = cuda_bf16_supported) -> T:
+    """What ``mode`` means for a model on ``device``: ``table[mode]``, "auto" replaced by
+    :func:`auto_mode` first.
+
+    Args:
+        mode: "auto" or a key of ``table`` (compared as given: a model lowers the case itself if it
+            accepts any case).
+        device: where the model runs.
+        table: the model's modes (e.g. ``{"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}``);
+            must hold "fp32", "bf16" and "fp16" for "auto".
+        unknown: the message for a mode that is not in ``table`` (one line naming the modes).
+        bf16: the test of bf16 on a CUDA device, for "auto".
+
+    Raises:
+        PrecisionError: ``mode`` is not in ``table``.
+    """
+    if mode == "auto":
+        mode = auto_mode(device, bf16)
+    if mode not in table:
+        raise PrecisionError(unknown)
+    return table[mode]
