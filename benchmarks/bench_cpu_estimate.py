@@ -119,22 +119,30 @@ def check_child(name: str, source: str, max_frames: int) -> dict:
     if done.returncode != 0:
         raise SystemExit(done.stderr[-2000:])
     line = next((l for l in done.stderr.splitlines() if "on this CPU" in l), "")
-    match = re.search(r"needs about ([\d.]+) (s|min|h) per (\d+)-frame submap", line)
-    unit = {"s": 1, "min": 60, "h": 3600}
-    estimated = float(match.group(1)) * unit[match.group(2)] if match else None
+    match = re.search(r"matmul ([\d.]+) GFLOP/s\) \S+ needs about [\d.]+ (?:s|min|h) per (\d+)-frame submap", line)
+    from sl4slam.registry import frontend_entry
+
+    # the run's own estimate before rounding: the model's work per frame x frames / the speed it measured
+    estimated = frontend_entry(name).cpu_work * int(match.group(2)) / float(match.group(1)) if match else None
     summary = json.loads((out / "summary.json").read_text())
+    window = int(match.group(2)) if match else None
+    if estimated is not None and summary["counts"]["submaps"] == 1:  # one window of the first keyframes only
+        estimated *= summary["counts"]["keyframes"] / window  # the estimate's own work per frame, for that window
+        window = summary["counts"]["keyframes"]
     return {"kind": "check", "model": name, "source": Path(source).name, "max_frames": max_frames,
-            "estimate_line": line, "estimated_s_per_submap": estimated,
+            "estimate_line": line, "estimated_s_per_submap": estimated, "window_frames": window,
             "measured_s_per_submap": summary["seconds"]["per_submap_median"]["frontend"],
             "submaps": summary["counts"]["submaps"], "keyframes": summary["counts"]["keyframes"],
+            "frontend_s": summary["seconds"]["by_stage"]["frontend"],
+            "window_frames_total": summary["counts"]["keyframes"] + 2 * (summary["counts"]["submaps"] - 1),
             "wall_s": wall, "load": os.getloadavg()[0], "date": _date()}
 
 
 def report(records: list[dict], threads: int) -> list[str]:
-    latest = {(r.get("kind"), r.get("model")): r for r in records}  # the newest record of each kind and model
-    records = list(latest.values())
-    calibrations = [r for r in records if r.get("kind") == "calibrate"]
-    checks = [r for r in records if r.get("kind") == "check"]
+    records = [r for r in records if "error" not in r]
+    calibrations = [r for r in records if r.get("kind") == "calibrate"]  # every one: their spread is the noise
+    latest = {(r["model"], r["max_frames"]): r for r in records if r.get("kind") == "check"}  # the newest of each
+    checks = list(latest.values())
     lines = ["## The CPU estimate: each model's work, and the estimate against whole runs", "",
              f"Machine: {machine()}; {threads} torch threads. Random full-size weights, float32.", "",
              "### Work per frame (`FrontendEntry.cpu_work`)", "",
@@ -148,17 +156,25 @@ def report(records: list[dict], threads: int) -> list[str]:
     if checks:
         lines += ["", "### The estimate against whole runs", "",
                   "`python benchmarks/bench_cpu_estimate.py check`: `sl4slam run` on the excerpt on the CPU; the "
-                  "estimate is the run's own line, printed before the first frame; measured = the median frontend "
-                  "seconds per submap over the run (`summary.json`).", "",
-                  "| model | source | frames | submaps | estimated s per submap | measured s per submap | "
-                  "estimate / measured | load | date |", "|---|---|---|---|---|---|---|---|---|"]
+                  "estimate is the run's own line, printed before the first frame (for a run of one submap, scaled from "
+                  "its 18-frame window to the frames that submap had); measured = the median frontend seconds per "
+                  "submap over the run (`summary.json`). Per frame: the estimate's work per frame over the speed the "
+                  "run measured, against the run's frontend seconds over the frames of all its windows (new "
+                  "keyframes plus two shared frames per later submap).", "",
+                  "| model | source | frames | submaps | window frames | estimated s per submap | measured s per submap | "
+                  "estimated s per frame | measured s per frame | estimate / measured (per frame) | load | date |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in checks:
             measured = r.get("measured_s_per_submap")
             ratio = f"{r['estimated_s_per_submap'] / measured:.2f}" if measured and r["estimated_s_per_submap"] else ""
-            lines.append(f"| {r['model']} | {r['source']} | {r['max_frames']} | {r['submaps']} | "
-                         f"{r['estimated_s_per_submap']} | {measured:.1f} | {ratio} | {r['load']:.1f} | {r['date']} |"
-                         if measured else f"| {r['model']} | {r['source']} | {r['max_frames']} | {r['submaps']} | "
-                         f"{r['estimated_s_per_submap']} | | | {r['load']:.1f} | {r['date']} |")
+            window = r.get("window_frames", 18)
+            estimated = r["estimated_s_per_submap"]
+            per_frame = estimated / window if estimated else None
+            measured_frame = r["frontend_s"] / r["window_frames_total"] if "frontend_s" in r else None
+            ratio = f"{per_frame / measured_frame:.2f}" if per_frame and measured_frame else ""
+            lines.append(f"| {r['model']} | {r['source']} | {r['max_frames']} | {r['submaps']} | {window} | "
+                         f"{estimated:.1f} | {measured:.1f} | {per_frame:.2f} | "
+                         f"{measured_frame:.2f} | {ratio} | {r['load']:.1f} | {r['date']} |")
     return lines
 
 

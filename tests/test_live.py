@@ -131,8 +131,12 @@ def test_kept_keyframes_are_re_readable_exactly(tmp_path: Path) -> None:
     assert source.kept == [i for i in seen if i % 7 == 0]
     for index in source.kept:
         np.testing.assert_array_equal(source.get(index).rgb, seen[index])
+    # a delivered frame that is neither kept nor the last one handed out (the one-slot reader may drop
+    # frames when the consumer is slow, so which frames arrived depends on the machine's load)
+    last = max(seen)
+    not_kept = next((i for i in seen if i % 7 != 0 and i != last), last + 1000)
     with pytest.raises(UserError, match="not kept"):
-        source.get(1)
+        source.get(not_kept)
     assert len(list((tmp_path / "spool").glob("*.png"))) == len(source.kept)
     source.close()
 

@@ -2,15 +2,14 @@
 
 A model's work per frame is stored in its registry entry (``FrontendEntry.cpu_work``) as the float32
 matrix-multiply work that takes the same time: GFLOP-equivalents per frame of a window, measured once
-(``benchmarks/bench_cpu_estimate.py``). This machine's float32 matmul speed, measured in a fraction of
-a second (``matmul_rate``), turns it into seconds here. ``docs/decisions/cpu-estimate.md`` gives the
+(``benchmarks/bench_cpu_estimate.py``). This machine's float32 matmul speed, measured in under a
+second (``matmul_rate``), turns it into seconds here. ``docs/decisions/cpu-estimate.md`` gives the
 measurements and how close the estimate comes.
 """
 
 from __future__ import annotations
 
 import math
-import statistics
 import time
 from dataclasses import dataclass
 from typing import Sequence
@@ -19,13 +18,18 @@ FRAMES_PER_KEYFRAME = 3.5
 """Input frames per keyframe assumed for a whole source (TUM fr1/desk's rate at the default disparity
 threshold): the keyframe count is known only once the run has seen the frames."""
 
-PROBE_SIZE = 1024
+PROBE_SIZE = 2048
 """Side of the square float32 matrices whose product measures the machine's speed."""
 
+PROBE_WARMUP_SECONDS = 0.3
+"""Products run before timing: a fresh process's first products run at a fraction of the speed
+(threads starting, caches and clocks cold), which would make every estimate pessimistic."""
 
-def matmul_rate(threads: int | None = None, repeats: int = 7) -> float:
-    """This machine's float32 matrix-multiply speed, GFLOP/s: the median of ``repeats`` products of two
-    ``PROBE_SIZE`` squares, after one warm-up (about 0.1-0.5 s in all on a laptop CPU).
+
+def matmul_rate(threads: int | None = None, repeats: int = 5) -> float:
+    """This machine's float32 matrix-multiply speed, GFLOP/s: the fastest of ``repeats`` products of
+    two ``PROBE_SIZE`` squares after ``PROBE_WARMUP_SECONDS`` of warm-up (about 0.7 s in all; the
+    fastest, since other work on the machine only ever slows a product down).
 
     Args:
         threads: torch threads to measure with (default: torch's current setting, as the run uses).
@@ -40,15 +44,17 @@ def matmul_rate(threads: int | None = None, repeats: int = 7) -> float:
         generator = torch.Generator().manual_seed(0)
         a = torch.rand(PROBE_SIZE, PROBE_SIZE, generator=generator)
         b = torch.rand(PROBE_SIZE, PROBE_SIZE, generator=generator)
-        torch.mm(a, b)
+        start = time.perf_counter()
+        while time.perf_counter() - start < PROBE_WARMUP_SECONDS:
+            torch.mm(a, b)
         times = []
         for _ in range(repeats):
-            start = time.perf_counter()
+            begin = time.perf_counter()
             torch.mm(a, b)
-            times.append(time.perf_counter() - start)
+            times.append(time.perf_counter() - begin)
     finally:
         torch.set_num_threads(previous)
-    return 2 * PROBE_SIZE**3 / max(statistics.median(times), 1e-9) / 1e9
+    return 2 * PROBE_SIZE**3 / max(min(times), 1e-9) / 1e9
 
 
 @dataclass(frozen=True)

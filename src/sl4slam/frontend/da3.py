@@ -213,7 +213,7 @@ def registry_entry(size: str):
         cpu_work=CPU_WORK[release.architecture])
 
 
-CPU_WORK = {"small": 279.0, "base": 658.0, "large": 1962.0, "giant": 5107.0}
+CPU_WORK = {"small": 306.0, "base": 722.0, "large": 2152.0, "giant": 5601.0}
 """GFLOP-equivalents per frame on a CPU, float32 (``sl4slam.frontend.cost``; docs/decisions/cpu-estimate.md)."""
 
 
