@@ -50,6 +50,7 @@ MEASURED_FIT_ULPS = 1938
 
 def scale_of(reference: torch.Tensor) -> float:
     """The tensor's largest finite magnitude (1.0 for an empty or all-zero tensor)."""
+    reference = reference.detach()
     finite = reference[torch.isfinite(reference)] if reference.is_floating_point() else reference
     if finite.numel() == 0:
         return 1.0
@@ -59,7 +60,7 @@ def scale_of(reference: torch.Tensor) -> float:
 
 def spacings_apart(ours: torch.Tensor, reference: torch.Tensor) -> float:
     """Largest elementwise difference in float32 spacings at the reference's scale (0 when equal)."""
-    difference = (ours.double() - reference.double()).abs()
+    difference = (ours.detach().double() - reference.detach().double()).abs()
     both_nan = torch.isnan(ours) & torch.isnan(reference)
     same_inf = torch.isinf(reference) & (ours == reference)
     difference = torch.where(both_nan | same_inf, torch.zeros_like(difference), difference)
