@@ -14,18 +14,10 @@ import datetime
 import os
 import platform
 import sys
-import time
-from pathlib import Path
 
-from sl4slam.config import SLAMConfig
-from sl4slam.io import open_source
-from sl4slam.result.outputs import compute_ate
-from sl4slam.pipeline import SLAMPipeline
-from sl4slam.synthetic import write_synthetic_sequence
+from harness import (add_parallel_arguments, grid, markdown_row, parallel_options, result_file, run_all, run_sequence,
+                     simulated_config, synthetic_world, table, write_report)
 
-from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
-
-HERE = Path(__file__).resolve().parent
 DISTORTIONS = {
     "none": dict(perspective=0.0, shear=0.0, scale=0.0),
     "mild": dict(perspective=0.05, shear=0.02, scale=0.05),
@@ -33,52 +25,51 @@ DISTORTIONS = {
 }
 
 
-def run(world: Path, distortion: str, backend: str, loops: bool, seed: int) -> tuple[float, int, int, float]:
-    config = SLAMConfig(frontend="simulated")
-    for key, value in DISTORTIONS[distortion].items():
-        setattr(config.sim, key, value)
-    config.sim.distort_first_submap = False
-    config.sim.seed = seed
-    config.backend.kind = backend
-    config.backend.graph = "submap"  # SL(4) against Sim(3) in VGGT-SLAM's graph: per-submap distortion
-    config.retrieval.kind = "orb" if loops else "none"
-    start = time.perf_counter()
-    pipeline = SLAMPipeline(config)
-    result = pipeline.run(open_source(str(world)), progress=False)
-    return compute_ate(result).rmse, result.stats["loops"], result.stats["fallbacks"], time.perf_counter() - start
+GRID = grid({"backend.kind": ["sl4", "sim3"], "retrieval.kind": ["none", "orb"]})
+"""Each distortion's runs: SL(4), then Sim(3); loops off, then on (ORB retrieval)."""
+
+
+def run(distortion: str, point: dict, seed: int) -> tuple[float, int, int, float]:
+    """One run of a grid point on the 320x240 world: (ATE, loops closed, fallbacks, seconds)."""
+    settings = {f"sim.{key}": value for key, value in DISTORTIONS[distortion].items()}
+    config = simulated_config({**settings, "sim.distort_first_submap": False, "sim.seed": seed,
+                               # SL(4) against Sim(3) in VGGT-SLAM's graph: per-submap distortion
+                               "backend.graph": "submap", **point})
+    outcome = run_sequence(config, synthetic_world(320, 240))
+    return outcome.ate(), outcome.stats["loops"], outcome.stats["fallbacks"], outcome.seconds
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, default=3, help="simulator seeds (distortion and noise draws)")
-    parser.add_argument("--out", default=str(HERE / "results" / "accuracy.md"))
+    add_parallel_arguments(parser, "--jobs", 1)
+    parser.add_argument("--out", default=str(result_file("accuracy")))
     args = parser.parse_args()
-    world = HERE / "out" / "synthetic_320x240"
-    if not (world / "groundtruth.txt").is_file():
-        write_synthetic_sequence(world, num_frames=600, width=320, height=240, seed=0)
+    synthetic_world(320, 240)  # rendered once, before any worker starts
+    cases = [(distortion, point) for distortion in DISTORTIONS for point in GRID]
+    outcomes = run_all(run, [(*case, seed) for case in cases for seed in range(args.seeds)], **parallel_options(args))
     rows = []
-    table: dict = {}
-    for distortion in DISTORTIONS:
-        for backend in ("sl4", "sim3"):
-            for loops in (False, True):
-                runs = [run(world, distortion, backend, loops, seed) for seed in range(args.seeds)]
-                ates = sorted(r[0] for r in runs)
-                median = ates[len(ates) // 2]
-                table[(distortion, backend, loops)] = median
-                rows.append(f"| {distortion} | {backend} | {'on' if loops else 'off'} | {median:.4f} | "
-                            f"{min(ates):.4f}-{max(ates):.4f} | {sum(r[1] for r in runs) / len(runs):.1f} | "
-                            f"{sum(r[2] for r in runs) / len(runs):.1f} | {sum(r[3] for r in runs) / len(runs):.1f} |")
-                print(rows[-1], flush=True)
+    table_of: dict = {}
+    for number, (distortion, point) in enumerate(cases):
+        backend, loops = point["backend.kind"], point["retrieval.kind"] == "orb"
+        runs = outcomes[number * args.seeds:(number + 1) * args.seeds]
+        ates = sorted(r[0] for r in runs)
+        median = ates[len(ates) // 2]
+        table_of[(distortion, backend, loops)] = median
+        rows.append([distortion, backend, "on" if loops else "off", f"{median:.4f}", f"{min(ates):.4f}-{max(ates):.4f}",
+                     f"{sum(r[1] for r in runs) / len(runs):.1f}", f"{sum(r[2] for r in runs) / len(runs):.1f}",
+                     f"{sum(r[3] for r in runs) / len(runs):.1f}"])
+        print(markdown_row(rows[-1]), flush=True)
     ratio_lines = []
     for distortion in DISTORTIONS:
         for loops in (False, True):
-            sl4, sim3 = table[(distortion, "sl4", loops)], table[(distortion, "sim3", loops)]
-            ratio_lines.append(f"| {distortion} | {'on' if loops else 'off'} | {sl4 / sim3:.3f} |")
+            sl4, sim3 = table_of[(distortion, "sl4", loops)], table_of[(distortion, "sim3", loops)]
+            ratio_lines.append([distortion, "on" if loops else "off", f"{sl4 / sim3:.3f}"])
     loop_lines = []
     for distortion in DISTORTIONS:
         for backend in ("sl4", "sim3"):
-            off, on = table[(distortion, backend, False)], table[(distortion, backend, True)]
-            loop_lines.append(f"| {distortion} | {backend} | {100 * (1 - on / off):+.0f} % |")
+            off, on = table_of[(distortion, backend, False)], table_of[(distortion, backend, True)]
+            loop_lines.append([distortion, backend, f"{100 * (1 - on / off):+.0f} %"])
     lines = [
         "## Accuracy sweep on the synthetic world (ATE RMSE, metres)",
         "",
@@ -91,21 +82,15 @@ def main() -> None:
         + "; ".join(f"{k} {v['perspective']}/{v['shear']}/{v['scale']}" for k, v in DISTORTIONS.items())
         + f". Median (and range) over {args.seeds} simulator seeds. Loops: ORB retrieval on / off.",
         "",
-        "| distortion | backend | loops | ATE median | range | loops closed | fallbacks | seconds |",
-        "|---|---|---|---|---|---|---|---|",
-        *rows,
+        *table(["distortion", "backend", "loops", "ATE median", "range", "loops closed", "fallbacks", "seconds"], rows),
         "",
         "SL(4) ATE / Sim(3) ATE (target at strong distortion: <= 1/3):",
         "",
-        "| distortion | loops | ratio |",
-        "|---|---|---|",
-        *ratio_lines,
+        *table(["distortion", "loops", "ratio"], ratio_lines),
         "",
         "ATE reduction by loop closure (target >= 30 % on the looping path):",
         "",
-        "| distortion | backend | reduction |",
-        "|---|---|---|",
-        *loop_lines,
+        *table(["distortion", "backend", "reduction"], loop_lines),
         "",
     ]
     write_report(args.out, lines)

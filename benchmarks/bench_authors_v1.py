@@ -64,14 +64,13 @@ from typing import Any, Sequence  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from _report import write_report  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the harness, also when loaded by path (tests)
+from harness import OUT, parse_settings as _parse_settings, result_file, shared_sequence  # noqa: E402
+from harness import make_frontend, run_sequence, simulated_config, synthetic_world, write_report  # noqa: E402
 
-WORK = HERE / "out" / "authors_v1"
+WORK = OUT / "authors_v1"
 ROWS = WORK / "rows.jsonl"
-SYNTHETIC = HERE / "out" / "levers" / "synthetic_320x240"  # the same rendering bench_levers.py uses
-TUM_DESK = HERE.parents[1] / "shared" / "data" / "tum_rgbd_fr1_desk"
+TUM_DESK = shared_sequence("desk")
 WORLDS = {"synthetic": "synthetic world (600 frames, 320x240, one lap)", "desk": "TUM fr1/desk (613 frames)"}
 PROFILES = {
     # name: (sim profile, explicit magnitudes, what it is)
@@ -449,47 +448,25 @@ def _feed_their_solver(modules: types.SimpleNamespace, recordings: list[Recordin
 
 # ---------------------------------------------------------------------------------------------- our side
 def world_path(name: str, data: Path | None = None) -> Path:
-    """The sequence of a world (the synthetic world is rendered once, as in bench_levers.py)."""
+    """The sequence of a world (the synthetic world at 320x240 is the rendering bench_levers.py uses)."""
     if name == "desk":
         return data if data is not None else TUM_DESK
-    from sl4slam.synthetic import write_synthetic_sequence
-
-    if not (SYNTHETIC / "groundtruth.txt").is_file():
-        write_synthetic_sequence(SYNTHETIC, num_frames=600, width=320, height=240, seed=0)
-    return SYNTHETIC
+    return synthetic_world(320, 240)
 
 
 def parse_settings(pairs: Sequence[str]) -> dict[str, Any]:
     """``["submap.overlap=2", "backend.graph=submap"]`` -> ``{"submap.overlap": 2, ...}`` (values read
-    as JSON where they parse, else as text)."""
-    settings = {}
-    for pair in pairs:
-        key, sep, text = pair.partition("=")
-        if not sep or "." not in key:
-            raise ValueError(f"--ours {pair!r}: expected section.name=value, e.g. submap.overlap=2")
-        try:
-            settings[key.strip()] = json.loads(text)
-        except json.JSONDecodeError:
-            settings[key.strip()] = text
-    return settings
+    as JSON where they parse, else as text; ``ValueError`` naming ``--ours`` for a pair that is not
+    ``section.name=value``)."""
+    return _parse_settings(pairs, flag="--ours")
 
 
 def make_config(profile: str, seed: int, settings: dict[str, Any]):
     """Our run's config: simulated frontend with ``profile``, ORB retrieval, ``settings`` on top."""
-    from sl4slam.config import SLAMConfig, config_from_dict
-
-    config = SLAMConfig(frontend="simulated")
     sim_profile, magnitudes, _ = PROFILES[profile]
-    config.sim.profile, config.sim.seed = sim_profile, seed
-    for key, value in magnitudes.items():
-        setattr(config.sim, key, value)
-    config.retrieval.kind = "orb"
-    config.retrieval.seed = config.alignment.seed = seed
-    nested: dict[str, dict] = {}
-    for key, value in settings.items():
-        section, _, name = key.partition(".")
-        nested.setdefault(section, {})[name] = value
-    return config_from_dict(nested, base=config)
+    return simulated_config({"sim.profile": sim_profile, "sim.seed": seed,
+                             **{f"sim.{key}": value for key, value in magnitudes.items()},
+                             "retrieval.kind": "orb", "retrieval.seed": seed, "alignment.seed": seed, **settings})
 
 
 def _ate(poses: dict[int, np.ndarray], truth: dict[int, tuple[float, np.ndarray]]) -> float:
@@ -506,11 +483,6 @@ def _ate(poses: dict[int, np.ndarray], truth: dict[int, tuple[float, np.ndarray]
 def one_row(world: str, profile: str, seed: int, settings: dict[str, Any], checkout: str, data: Path | None,
             keep_recording: bool = False) -> dict:
     """Run the four back ends of the module doc on one recording and return the row."""
-    from sl4slam.frontend import make_frontend
-    from sl4slam.io import open_source
-    from sl4slam.pipeline import SLAMPipeline
-    from sl4slam.resolve import resolve
-
     record_dir = WORK / "recordings" / f"{world}_{profile}_s{seed}"
     shutil.rmtree(record_dir, ignore_errors=True)
     sequence = str(world_path(world, data))
@@ -519,10 +491,9 @@ def one_row(world: str, profile: str, seed: int, settings: dict[str, Any], check
     seconds: dict[str, float] = {}
 
     config = make_config(profile, seed, settings)
-    start = time.perf_counter()
-    pipeline = SLAMPipeline(config, frontend=make_frontend(config, cache_dir=record_dir))
-    result = pipeline.run(open_source(sequence, resolve(config).config.source), progress=False)
-    seconds["ours"] = time.perf_counter() - start
+    ours_run = run_sequence(config, sequence, frontend=make_frontend(config, cache_dir=record_dir))
+    result = ours_run.result
+    seconds["ours"] = ours_run.seconds
     truth = {k.frame_index: (k.timestamp, gt) for k, gt in zip(result.keyframes, result.T_world_cam_gt)}
     ours = {k.frame_index: T for k, T in zip(result.keyframes, result.T_world_cam)}
     row["ours"] = _ate(ours, truth)
@@ -532,10 +503,9 @@ def one_row(world: str, profile: str, seed: int, settings: dict[str, Any], check
 
     sim3_settings = {**settings, "backend.kind": "sim3"}
     sim3_config = make_config(profile, seed, sim3_settings)
-    start = time.perf_counter()
-    replay = SLAMPipeline(sim3_config, frontend=make_frontend(sim3_config, replay_dir=record_dir))
-    replayed = replay.run(open_source(sequence, resolve(sim3_config).config.source), progress=False)
-    seconds["ours_sim3"] = time.perf_counter() - start
+    replay = run_sequence(sim3_config, sequence, frontend=make_frontend(sim3_config, replay_dir=record_dir))
+    replayed = replay.result
+    seconds["ours_sim3"] = replay.seconds
     row["ours_sim3"] = _ate({k.frame_index: T for k, T in zip(replayed.keyframes, replayed.T_world_cam)}, truth)
     row["ours_sim3_loops"] = sum(e.accepted for e in replayed.edges if e.kind == "loop")
 
@@ -688,7 +658,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, help="TUM fr1/desk folder (default: ../shared/data/tum_rgbd_fr1_desk)")
     parser.add_argument("--keep-recordings", action="store_true", help="keep the recorded submaps under benchmarks/out/authors_v1/")
     parser.add_argument("--report", action="store_true", help="only write the report from the rows there are")
-    parser.add_argument("--out", type=Path, default=HERE / "results" / "authors_v1.md")
+    parser.add_argument("--out", type=Path, default=result_file("authors_v1"))
     args = parser.parse_args(argv)
     if not args.report:
         problem = checkout_problem(args.vggt_slam)

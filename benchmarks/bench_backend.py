@@ -8,7 +8,8 @@ Measures, for the SL(4) and Sim(3) backends side by side in one process:
   * wall time of the final Gauss-Newton polish (``final_estimates``) at 300 submaps, and how far
     it moves iSAM2's estimate and how close it lands to a tight batch Levenberg-Marquardt.
 
-Writes ``benchmarks/results/backend.md``. Usage: ``python benchmarks/bench_backend.py [--repeats N]``.
+Writes ``benchmarks/results/backend.md`` (``--out`` for another file).
+Usage: ``python benchmarks/bench_backend.py [--repeats N]``.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
+from harness import result_file, table, write_report
 from sl4slam.backend import make_backend
 from sl4slam.config import BackendConfig
 
@@ -29,7 +31,7 @@ NUM_SUBMAPS = 300
 LOOP_SIZES = (100, 300)
 LOOP_EVERY = 50
 LOOP_SPAN = 45
-RESULTS = Path(__file__).resolve().parent / "results" / "backend.md"
+RESULTS = result_file("backend")
 
 
 def random_step(kind: str, rng: np.random.Generator, scale: float) -> np.ndarray:
@@ -63,7 +65,7 @@ def odometry_times(kind: str, seed: int, loop_every: int = 0) -> np.ndarray:
     loops leave later updates more expensive.
     """
     truth, odometry = make_problem(kind, NUM_SUBMAPS, seed)
-    backend = make_backend(BackendConfig(kind=kind))
+    backend = make_backend(BackendConfig(kind=kind, graph="submap"))
     times = np.empty(NUM_SUBMAPS)
     for k in range(NUM_SUBMAPS):
         start = time.perf_counter()
@@ -78,7 +80,7 @@ def odometry_times(kind: str, seed: int, loop_every: int = 0) -> np.ndarray:
 def loop_update_time(kind: str, num_submaps: int, seed: int) -> tuple[float, int]:
     """Seconds (and iSAM2 iterations) of the update absorbing a loop from the last node to the first."""
     truth, odometry = make_problem(kind, num_submaps, seed)
-    backend = make_backend(BackendConfig(kind=kind))
+    backend = make_backend(BackendConfig(kind=kind, graph="submap"))
     for k in range(num_submaps):
         backend.add_submap(k, None if k == 0 else odometry[k - 1])
         backend.update()
@@ -96,7 +98,7 @@ def final_polish(kind: str, num_submaps: int, seed: int) -> tuple[float, float, 
     import gtsam
 
     truth, odometry = make_problem(kind, num_submaps, seed)
-    backend = make_backend(BackendConfig(kind=kind))
+    backend = make_backend(BackendConfig(kind=kind, graph="submap"))
     for k in range(num_submaps):
         backend.add_submap(k, None if k == 0 else odometry[k - 1])
         if k % LOOP_EVERY == 0 and k >= LOOP_SPAN:
@@ -120,9 +122,16 @@ def final_polish(kind: str, num_submaps: int, seed: int) -> tuple[float, float, 
     return seconds, change, gap
 
 
+def polish_row(kind: str, runs: list[tuple[float, float, float]]) -> list[str]:
+    """The final-polish row of a backend: medians of its seconds, change and gap over the runs."""
+    seconds, change, gap = (np.median([r[i] for r in runs]) for i in range(3))
+    return [kind, f"{seconds * 1e3:.1f}", f"{change:.1e}", f"{gap:.1e}"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5, help="independent runs per measurement (median)")
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     kinds = ("sl4", "sim3")
 
@@ -156,50 +165,37 @@ def main() -> None:
         f"The second row per backend also closes a loop (span {LOOP_SPAN}) every {LOOP_EVERY} submaps; "
         "submaps 290-300 are odometry-only in both.",
         "",
-        "| backend | loops | add_submap+update, submaps 10-20 (ms) | submaps 290-300 (ms) | late / early |",
-        "|---|---|---|---|---|",
+        *table(["backend", "loops", "add_submap+update, submaps 10-20 (ms)", "submaps 290-300 (ms)", "late / early"],
+               [[kind, f"every {loop_every}" if loop_every else "none", f"{early[kind, loop_every] * ms:.3f}",
+                 f"{late[kind, loop_every] * ms:.3f}", f"{late[kind, loop_every] / early[kind, loop_every]:.2f}"]
+                for kind in kinds for loop_every in (0, LOOP_EVERY)]),
     ]
-    for kind in kinds:
-        for loop_every in (0, LOOP_EVERY):
-            a, b = early[kind, loop_every], late[kind, loop_every]
-            label = f"every {loop_every}" if loop_every else "none"
-            lines.append(f"| {kind} | {label} | {a * ms:.3f} | {b * ms:.3f} | {b / a:.2f} |")
     lines += [
         "",
         "Update that absorbs one loop closure (node 0 to the newest node; the loop corrects the odometry's "
         "drift, so iSAM2 iterates, relinearizing, while some step exceeds 5e-2; the cost grows with the "
         "loop's length):",
         "",
-        "| backend | submaps | loop update (ms) | iSAM2 iterations |",
-        "|---|---|---|---|",
+        *table(["backend", "submaps", "loop update (ms)", "iSAM2 iterations"],
+               [[kind, size, f"{loop_seconds[kind, size] * ms:.2f}", loop_iterations[kind, size]]
+                for kind in kinds for size in LOOP_SIZES]),
     ]
-    for kind in kinds:
-        for size in LOOP_SIZES:
-            lines.append(
-                f"| {kind} | {size} | {loop_seconds[kind, size] * ms:.2f} | {loop_iterations[kind, size]} |"
-            )
     lines += [
         "",
         f"End of a run ({NUM_SUBMAPS} submaps, a loop every {LOOP_EVERY} and one from the last node to the "
         "first): iSAM2 relinearizes only variables whose step exceeds 1e-2, so `final_estimates` polishes "
         "the whole graph once by Gauss-Newton:",
         "",
-        "| backend | final polish (ms) | largest entry change to iSAM2's estimate | largest entry difference to batch LM |",
-        "|---|---|---|---|",
+        *table(["backend", "final polish (ms)", "largest entry change to iSAM2's estimate",
+                "largest entry difference to batch LM"], [polish_row(kind, polish[kind]) for kind in kinds]),
     ]
-    for kind in kinds:
-        seconds, change, gap = (np.median([r[i] for r in polish[kind]]) for i in range(3))
-        lines.append(f"| {kind} | {seconds * ms:.1f} | {change:.1e} | {gap:.1e} |")
     lines += [
         "",
         f"Sim(3) / SL(4) per-submap time at 290-300: {late['sim3', 0] / late['sl4', 0]:.2f}; "
         f"loop update at 300: {loop_seconds['sim3', 300] / loop_seconds['sl4', 300]:.2f}.",
         "",
     ]
-    text = "\n".join(lines)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(text)
-    print(text)
+    write_report(args.out, lines)
 
 
 if __name__ == "__main__":

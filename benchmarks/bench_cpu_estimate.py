@@ -28,13 +28,11 @@ import sys
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from _report import write_report  # noqa: E402
-from bench_da3 import _date, _frames, machine  # noqa: E402
-from bench_models import build_frontend  # noqa: E402
+from bench_models import build_frontend
+from harness import OUT as SCRATCH
+from harness import date_text, random_frames, result_file, torch_machine, write_report
 
-OUT = HERE / "out" / "cpu_estimate"
+OUT = SCRATCH / "cpu_estimate"
 RECORDS = OUT / "records.jsonl"
 
 
@@ -46,7 +44,7 @@ def calibrate_child(name: str, frames: int) -> dict:
     from sl4slam.types import Frame
 
     frontend = build_frontend(name)
-    images = _frames(frames, seed=2)
+    images = random_frames(frames, seed=2)
     window = [Frame(index=i, timestamp=float(i), rgb=image) for i, image in enumerate(images)]
     with torch.inference_mode():
         frontend.reconstruct(window[:2], submap_id=0)  # warm-up: kernels and allocator
@@ -59,7 +57,7 @@ def calibrate_child(name: str, frames: int) -> dict:
     assert np.isfinite(prediction.depth).all()
     return {"kind": "calibrate", "model": name, "frames": frames, "seconds": seconds, "rate": rate,
             "rates": [rate_before, rate_after], "cpu_work": seconds / frames * rate,
-            "threads": torch.get_num_threads(), "load": os.getloadavg()[0], "date": _date()}
+            "threads": torch.get_num_threads(), "load": os.getloadavg()[0], "date": date_text()}
 
 
 def run_child(args: list[str], threads: int, timeout: float) -> dict:
@@ -135,7 +133,7 @@ def check_child(name: str, source: str, max_frames: int) -> dict:
             "submaps": summary["counts"]["submaps"], "keyframes": summary["counts"]["keyframes"],
             "frontend_s": summary["seconds"]["by_stage"]["frontend"],
             "window_frames_total": summary["counts"]["keyframes"] + 2 * (summary["counts"]["submaps"] - 1),
-            "wall_s": wall, "load": os.getloadavg()[0], "date": _date()}
+            "wall_s": wall, "load": os.getloadavg()[0], "date": date_text()}
 
 
 def report(records: list[dict], threads: int) -> list[str]:
@@ -144,7 +142,7 @@ def report(records: list[dict], threads: int) -> list[str]:
     latest = {(r["model"], r["max_frames"]): r for r in records if r.get("kind") == "check"}  # the newest of each
     checks = list(latest.values())
     lines = ["## The CPU estimate: each model's work, and the estimate against whole runs", "",
-             f"Machine: {machine()}; {threads} torch threads. Random full-size weights, float32.", "",
+             f"Machine: {torch_machine()}; {threads} torch threads. Random full-size weights, float32.", "",
              "### Work per frame (`FrontendEntry.cpu_work`)", "",
              "`python benchmarks/bench_cpu_estimate.py calibrate`: one window of random 640x480 frames after a "
              "two-frame warm-up; the float32 matmul speed measured in the same process before and after.", "",
@@ -203,7 +201,7 @@ def main() -> None:
                 "--source", args.source, "--max-frames", str(args.max_frames)]
             print(json.dumps(run_child([args.mode, "--child", name, *extra], args.threads, args.timeout)))
     records = [json.loads(line) for line in RECORDS.read_text().splitlines() if line.strip()] if RECORDS.exists() else []
-    write_report(HERE / "results" / "cpu_estimate.md", report(records, args.threads))
+    write_report(result_file("cpu_estimate"), report(records, args.threads))
 
 
 if __name__ == "__main__":

@@ -34,62 +34,27 @@ import argparse
 import importlib.util
 import json
 import os
-import platform
-import re
-import resource
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from _report import write_report
+from harness import (REPO, date_text, max_rss_bytes, peak_rss_bytes, random_frames, replace_section, reset_peak_rss,
+                     result_file, torch_machine)
 
-RESULTS = HERE / "results" / "da3.md"
-FIXTURE_SCRIPT = HERE.parent / "tests" / "fixtures" / "make_da3_fixtures.py"
+RESULTS = result_file("da3")
+FIXTURE_SCRIPT = REPO / "tests" / "fixtures" / "make_da3_fixtures.py"
 SIZES = ("small", "base", "large", "giant")
-FRAME_HW = (480, 640)
 RAY_SEED = 5
 PERTURB_SEED = 3
 
 
 # ------------------------------------------------------------------------------------ helpers
-def _peak_rss_bytes() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-
-def _vm_hwm_bytes() -> int:
-    with open("/proc/self/status") as handle:
-        for line in handle:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) * 1024
-    return 0
-
-
-def _reset_vm_hwm() -> None:
-    with open("/proc/self/clear_refs", "w") as handle:
-        handle.write("5")
-
-
 def _reference(checkout: Path):
     spec = importlib.util.spec_from_file_location("make_da3_fixtures", FIXTURE_SCRIPT)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module.import_reference(checkout)
-
-
-def _frames(count: int, seed: int):
-    import numpy as np
-
-    rng = np.random.default_rng(seed)
-    height, width = FRAME_HW
-    ys, xs = np.mgrid[0:height, 0:width]
-    frames = []
-    for index in range(count):  # smooth ramps and noise: some structure for the reference-view choice
-        base = np.stack([xs // 3 + 9 * index, ys // 2, (xs + ys) // 5 + 17 * index], axis=-1) % 256
-        frames.append(np.clip(base + rng.integers(-25, 26, base.shape), 0, 255).astype(np.uint8))
-    return frames
 
 
 def _compare(ours, theirs) -> dict:
@@ -135,7 +100,7 @@ def child_parity(size: str, checkout: Path, frames: int) -> dict:
     shared = all(a.data_ptr() == b.data_ptr() for a, b in zip(ours.backbone.parameters(),
                                                                  theirs.backbone.parameters()))
     build_s = time.perf_counter() - started
-    images = _frames(frames, seed=1)
+    images = random_frames(frames, seed=1)
     theirs_images, _, _ = ref.InputProcessor()(images, None, None, 504, "upper_bound_resize", sequential=True)
     batch = preprocess_images(images)
     results = {"preprocess.images": _compare(batch.images, theirs_images)}
@@ -175,7 +140,7 @@ def child_parity(size: str, checkout: Path, frames: int) -> dict:
         for key in ("depth", "depth_conf", "extrinsics", "intrinsics"):
             results[f"cond.{key}"] = _compare(mine[key], reference[key])
     return {"size": size, "frames": frames, "image_hw": [height, width], "weights_shared": shared,
-            "build_s": build_s, "forward_s": timings, "peak_rss_bytes": _peak_rss_bytes(), "results": results,
+            "build_s": build_s, "forward_s": timings, "peak_rss_bytes": max_rss_bytes(), "results": results,
             "reference_view": reference_view}
 
 
@@ -186,7 +151,7 @@ def child_timing(size: str, implementation: str, checkout: Path | None, frames: 
     from sl4slam.models.da3 import build_da3, init_random_weights, preprocess_images
     from sl4slam.models.da3.config import ARCHITECTURES
 
-    images = preprocess_images(_frames(frames, seed=2)).images[None]
+    images = preprocess_images(random_frames(frames, seed=2)).images[None]
     started = time.perf_counter()
     if implementation == "ours":
         model = init_random_weights(build_da3(ARCHITECTURES[size], device="meta"), seed=0).eval()
@@ -202,7 +167,7 @@ def child_timing(size: str, implementation: str, checkout: Path | None, frames: 
             with torch.inference_mode():
                 return model(images)
     build_s = time.perf_counter() - started
-    rss_built = _peak_rss_bytes()
+    rss_built = max_rss_bytes()
     with torch.inference_mode():  # one tiny forward first: kernels and allocator warmed up
         model(images[:, :2, :, :56, :56])
     start = time.perf_counter()
@@ -210,7 +175,7 @@ def child_timing(size: str, implementation: str, checkout: Path | None, frames: 
     seconds = time.perf_counter() - start
     assert torch.isfinite(out["depth"]).all()
     return {"size": size, "implementation": implementation, "frames": frames, "image_hw": list(images.shape[-2:]),
-            "seconds": seconds, "build_s": build_s, "peak_rss_bytes": _peak_rss_bytes(),
+            "seconds": seconds, "build_s": build_s, "peak_rss_bytes": max_rss_bytes(),
             "peak_rss_after_build_bytes": rss_built, "load": os.getloadavg(),
             "parameters": sum(p.numel() for p in model.parameters())}
 
@@ -227,12 +192,12 @@ def child_attention() -> dict:
     names = {-1: "error", 0: "math", 1: "flash attention (CPU)", 2: "efficient attention", 3: "cudnn"}
     with torch.inference_mode():
         F.scaled_dot_product_attention(q[:, :, :64], k[:, :, :64], v[:, :, :64])
-        _reset_vm_hwm()
-        before = _vm_hwm_bytes()
+        reset_peak_rss()
+        before = peak_rss_bytes(fallback=False)
         start = time.perf_counter()
         out = F.scaled_dot_product_attention(q, k, v)
         seconds = time.perf_counter() - start
-        added = _vm_hwm_bytes() - before
+        added = peak_rss_bytes(fallback=False) - before
     table = heads * tokens * tokens * 4
     return {"tokens": tokens, "heads": heads, "head_dim": dim, "kernel": names.get(choice, str(choice)),
             "seconds": seconds, "added_peak_bytes": added, "output_bytes": out.numel() * 4, "table_bytes": table}
@@ -250,23 +215,12 @@ def run_child(args: list[str], threads: int, timeout: float) -> dict:
 
 
 def machine() -> str:
-    model = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import torch
-
-    memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
-    return (f"{model}, {os.cpu_count()} cores, {memory:.0f} GiB, Linux {platform.release()}; torch {torch.__version__} "
-            f"({torch.backends.cpu.get_cpu_capability()}), Python {platform.python_version()}")
+    """The machine in one line (CPU, cores, memory, kernel, torch, Python)."""
+    return torch_machine()
 
 
 def _date() -> str:
-    return subprocess.run(["date"], capture_output=True, text=True).stdout.strip()
+    return date_text()
 
 
 def _gib(value: float) -> str:
@@ -338,11 +292,8 @@ def attention_section(record: dict, command: str) -> list[str]:
 
 def write_section(name: str, lines: list[str], path: Path) -> None:
     """Replace section ``name`` of ``path`` (kept between markers), keeping the others."""
-    text = path.read_text() if path.exists() else "# Depth Anything 3 benchmarks\n"
-    block = f"<!-- section:{name} -->\n" + "\n".join(lines) + f"\n<!-- /section:{name} -->"
-    pattern = re.compile(rf"<!-- section:{name} -->.*?<!-- /section:{name} -->", re.S)
-    text = pattern.sub(lambda _: block, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + block
-    write_report(path, text.rstrip("\n").splitlines())
+    start, end = f"<!-- section:{name} -->", f"<!-- /section:{name} -->"
+    replace_section(path, start, end, [start, *lines, end], ["# Depth Anything 3 benchmarks"])
 
 
 def main() -> None:

@@ -32,12 +32,11 @@ import tempfile
 import time
 from pathlib import Path
 
+from harness import result_file, synthetic_world, timed, write_report
 from sl4slam.cli import build_parser, config_from_args
-from sl4slam.evaluation import EvalSettings, evaluate
+from sl4slam.evaluation import EvalSettings, LocalExecutor, evaluate
 from sl4slam.evaluation.executors import cpu_count
-from sl4slam.synthetic import write_seven_scenes_sequence, write_synthetic_sequence
 
-HERE = Path(__file__).resolve().parent
 DEFAULT_FRONTEND_ARGS = ["--sim-perspective", "0.1"]
 
 
@@ -46,11 +45,8 @@ def make_datasets(work: Path, sequences: int, frames: int, width: int, height: i
     tum, seven = work / "tum", work / "7scenes"
     names = [f"world-{seed}" for seed in range(sequences)]
     for seed, name in enumerate(names):
-        if not (tum / name / "rgb.txt").is_file():
-            write_synthetic_sequence(tum / name, num_frames=frames, width=width, height=height, seed=seed, overwrite=True)
-        if not (seven / name / "seq-01").is_dir():
-            write_seven_scenes_sequence(seven / name / "seq-01", num_frames=frames, width=width, height=height, seed=seed,
-                                        overwrite=True)
+        synthetic_world(width, height, frames, seed, folder=tum / name)
+        synthetic_world(width, height, frames, seed, layout="7scenes", folder=seven / name / "seq-01")
     return tum, seven, names
 
 
@@ -67,16 +63,14 @@ def table_block(path: Path) -> str:
     return "\n".join(line for line in text.splitlines() if line != "## Results").strip()
 
 
-def timed(**kwargs):
-    start = time.perf_counter()
-    outcome = evaluate(**kwargs)
-    return outcome, time.perf_counter() - start
+def timed_evaluation(**kwargs):
+    """:func:`sl4slam.evaluation.evaluate` and its wall seconds."""
+    outcome, seconds, _ = timed(evaluate, **kwargs)
+    return outcome, seconds
 
 
 def scaling(root: Path, names: list[str], config, runs: int, repeats: int) -> list[str]:
     """Wall time of one 7-Scenes evaluation in this process, on a pool of 1 and on a pool of 2."""
-    from sl4slam.evaluation import LocalExecutor
-
     runs = max(2, runs // 2)
     threads = max(1, cpu_count() // 2)
     variants = {"this process": lambda: None, "pool of 1": lambda: LocalExecutor(1, threads),
@@ -88,8 +82,9 @@ def scaling(root: Path, names: list[str], config, runs: int, repeats: int) -> li
             shutil.rmtree(out, ignore_errors=True)
             executor = make()
             try:
-                _, elapsed = timed(root=root, out_dir=out, settings=EvalSettings(dataset="7scenes", runs=runs),
-                                   config=config, sequences=names, workers=1, executor=executor, progress=False)
+                _, elapsed = timed_evaluation(root=root, out_dir=out, settings=EvalSettings(dataset="7scenes", runs=runs),
+                                              config=config, sequences=names, workers=1, executor=executor,
+                                              progress=False)
             finally:
                 if executor is not None:
                     executor.close()
@@ -123,7 +118,7 @@ def main() -> None:
     parser.add_argument("--sequences-tum", nargs="+", help="sequences of --tum-root (default: all found)")
     parser.add_argument("--parts", nargs="+", default=["tables", "scaling", "ray"], choices=["tables", "scaling", "ray"],
                         help="what to measure (the report holds these parts only)")
-    parser.add_argument("--output", default=str(HERE / "results" / "evaluation.md"))
+    parser.add_argument("--output", default=str(result_file("evaluation")))
     parser.add_argument("run_args", nargs="*", help="run settings after --, e.g. -- --sim-profile vggt")
     args = parser.parse_args()
     frontend_args = args.run_args or DEFAULT_FRONTEND_ARGS
@@ -155,8 +150,8 @@ def main() -> None:
     for key, root in (("tum", tum), ("7scenes", seven)) if "tables" in args.parts else ():
         out = work / f"eval_{key}"
         shutil.rmtree(out, ignore_errors=True)
-        outcome, seconds = timed(root=root, out_dir=out, settings=EvalSettings(dataset=key, runs=args.runs), config=config,
-                                 sequences=names, workers=args.workers, progress=True)
+        outcome, seconds = timed_evaluation(root=root, out_dir=out, settings=EvalSettings(dataset=key, runs=args.runs),
+                                            config=config, sequences=names, workers=args.workers, progress=True)
         timings[key] = seconds
         failed = sum(r["status"] != "ok" for r in outcome.results)
         report.append(f"### {'TUM RGB-D' if key == 'tum' else '7-Scenes'} layout ({len(outcome.results)} runs, "
@@ -179,8 +174,9 @@ def main() -> None:
         out = work / "eval_real_tum"
         shutil.rmtree(out, ignore_errors=True)
         real_config = run_config(["--frontend", "simulated", "--retrieval", "orb", *frontend_args])
-        outcome, seconds = timed(root=args.tum_root, out_dir=out, settings=EvalSettings(dataset="tum", runs=args.runs),
-                                 config=real_config, sequences=args.sequences_tum, workers=args.workers, progress=True)
+        outcome, seconds = timed_evaluation(root=args.tum_root, out_dir=out,
+                                            settings=EvalSettings(dataset="tum", runs=args.runs), config=real_config,
+                                            sequences=args.sequences_tum, workers=args.workers, progress=True)
         report.append(f"### Real TUM RGB-D images and ground truth, simulated frontend ({seconds:.0f} s wall)\n")
         report.append(f"Run settings: `--frontend simulated --retrieval orb {' '.join(frontend_args)}` (paper keyframe "
                       "threshold 25 px at 640x480).\n")
@@ -198,8 +194,8 @@ def main() -> None:
                 shutil.rmtree(path, ignore_errors=True)
             common = dict(root=tum, settings=EvalSettings(dataset="tum", runs=2), config=config, sequences=names,
                           grid=["backend.kind=sl4,sim3"], workers=2, threads=1, progress=False)
-            local, seconds_local = timed(out_dir=local_out, **common)
-            on_ray, seconds_ray = timed(out_dir=ray_out, ray=True, **common)
+            local, seconds_local = timed_evaluation(out_dir=local_out, **common)
+            on_ray, seconds_ray = timed_evaluation(out_dir=ray_out, ray=True, **common)
             same = [(r["point"], r["sequence"], r["run"], r["metrics"]) for r in local.results] == \
                    [(r["point"], r["sequence"], r["run"], r["metrics"]) for r in on_ray.results]
             report.append("### Ray against the local pool\n")
@@ -210,10 +206,7 @@ def main() -> None:
         except ImportError:
             report.append("Ray is not installed: the Ray comparison was skipped.\n")
 
-    output = Path(args.output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    output.write_text("\n".join(report))
-    print("\n".join(report))
+    write_report(args.output, "\n".join(report).splitlines())
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ tests make them) so that the figure does not depend on running the pipeline for 
 export reads every keyframe file once (two threads), writes its image (PNG, fast compression)
 and samples up to 1M points. The files are in the page cache after being written (warm reads).
 
-Writes ``benchmarks/results/export.md``.
+Writes ``benchmarks/results/export.md`` (``--out`` for another file).
 Usage: ``python benchmarks/bench_export.py [--keyframes 1000] [--width 518] [--height 294] [--repeats 3]``.
 """
 
@@ -15,27 +15,29 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import shutil
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "tests"))
+from harness import REPO, result_file, table, timed, write_report
+
+sys.path.insert(0, str(REPO / "tests"))
 
 from result_folders import write_known_result  # noqa: E402
 
 from sl4slam.export import export_colmap, export_nerfstudio, export_submap_ply  # noqa: E402
 from sl4slam.result.reading import load_result  # noqa: E402
 
-RESULTS = HERE / "results" / "export.md"
+RESULTS = result_file("export")
 
 
-def timed(function, *args, **kwargs):
-    wall, cpu = time.perf_counter(), time.process_time()
-    report = function(*args, **kwargs)
-    return report, time.perf_counter() - wall, time.process_time() - cpu
+def export_row(name: str, values: list[tuple[float, float, int]], keyframes: int) -> list[str]:
+    """An export's row from its (wall s, CPU s, points) per repeat: medians, points, wall per keyframe."""
+    wall, cpu = statistics.median(v[0] for v in values), statistics.median(v[1] for v in values)
+    return [name, f"{wall:.1f}", f"{cpu:.1f}", f"{values[0][2]:,}", f"{1000 * wall / keyframes:.1f}"]
 
 
 def main() -> None:
@@ -44,6 +46,7 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=518)
     parser.add_argument("--height", type=int, default=294)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     rows = {}
     with tempfile.TemporaryDirectory() as scratch:
@@ -63,8 +66,6 @@ def main() -> None:
             for repeat in range(args.repeats):
                 report, wall, cpu = timed(job, scratch / f"out_{repeat}")
                 rows.setdefault(name, []).append((wall, cpu, report.points))
-                import shutil
-
                 shutil.rmtree(scratch / f"out_{repeat}")
     load = os.getloadavg()[0]
     lines = [
@@ -79,15 +80,10 @@ def main() -> None:
         f"{made:.0f} s, read warm from the page cache); medians of {args.repeats} runs. Each export writes every "
         "keyframe image (PNG unless stated; the fabricated images are smooth, like photographs) and, for COLMAP / nerfstudio, up to 1M points (evenly spread over the keyframes).",
         "",
-        "| export | wall (s) | CPU (s) | points | wall per keyframe (ms) |",
-        "|---|---|---|---|---|",
+        *table(["export", "wall (s)", "CPU (s)", "points", "wall per keyframe (ms)"],
+               [export_row(name, values, args.keyframes) for name, values in rows.items()]),
     ]
-    for name, values in rows.items():
-        wall = statistics.median(v[0] for v in values)
-        cpu = statistics.median(v[1] for v in values)
-        lines.append(f"| {name} | {wall:.1f} | {cpu:.1f} | {values[0][2]:,} | {1000 * wall / args.keyframes:.1f} |")
-    RESULTS.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_report(args.out, lines)
 
 
 if __name__ == "__main__":

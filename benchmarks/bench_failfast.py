@@ -26,10 +26,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
+from harness import markdown_row, result_file, shared_sequence, table, write_report
 
-HERE = Path(__file__).resolve().parent
-SEQUENCE = HERE.parent.parent / "shared" / "data" / "tum_rgbd_fr1_desk"
+SEQUENCE = shared_sequence("desk")
 
 
 def timed(args: list[str], env: dict) -> tuple[float, str, int, float]:
@@ -50,7 +49,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--sequence", default=str(SEQUENCE))
-    parser.add_argument("--out", default=str(HERE / "results" / "failfast.md"))
+    parser.add_argument("--out", default=str(result_file("failfast")))
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -68,10 +67,10 @@ def main() -> None:
             seconds = [r[0] for r in runs]
             cpu = [r[3] for r in runs]
             codes = {r[2] for r in runs}
-            rows.append(f"| {name} | {statistics.median(seconds):.2f} | {min(seconds):.2f}-{max(seconds):.2f} | "
-                        f"{statistics.median(cpu):.2f} | {target:g} | "
-                        f"{','.join(map(str, sorted(codes)))} | {runs[0][1][:90]}... |")
-            print(rows[-1], flush=True)
+            rows.append([name, f"{statistics.median(seconds):.2f}", f"{min(seconds):.2f}-{max(seconds):.2f}",
+                         f"{statistics.median(cpu):.2f}", f"{target:g}", ",".join(map(str, sorted(codes))),
+                         f"{runs[0][1][:90]}..."])
+            print(markdown_row(rows[-1]), flush=True)
     load = os.getloadavg()[0]
     lines = [
         "## Fail fast: time to the first error line",
@@ -83,9 +82,8 @@ def main() -> None:
         "error line (Python start-up and imports included), and the CPU time it used (what the wall time is on an idle "
         "machine, less waiting on the network probe). Median (range) over the repeats.",
         "",
-        "| case | wall median (s) | wall range (s) | CPU median (s) | target (s) | exit code | first line |",
-        "|---|---|---|---|---|---|---|",
-        *rows,
+        *table(["case", "wall median (s)", "wall range (s)", "CPU median (s)", "target (s)", "exit code", "first line"],
+               rows),
         "",
     ]
     write_report(args.out, lines)

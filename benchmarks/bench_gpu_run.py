@@ -218,7 +218,7 @@ def one_run(spec: dict) -> dict:
     from sl4slam.resolve import resolve
     from sl4slam.runner import run_slam
 
-    from _timing import TimedSource  # benchmarks/ is on sys.path: the script runs from there
+    from harness import TimedSource  # benchmarks/ is on sys.path: the script runs from there
 
     cuda = spec["device"] == "cuda"
     capped = cuda and spec["memory_cap_gb"] > 0
@@ -353,14 +353,13 @@ def run(out: Path, frames: int, dry_run: bool, timeout: float) -> int:
     work = Path(f"/tmp/sl4slam-{'dry' if dry_run else 'gpu'}")
     work.mkdir(exist_ok=True)
     weights = random_vggt(work / "vggt_random_bf16.safetensors", model_config)
+    from harness import synthetic_world
     from sl4slam.models.vggt.model import VGGTModelConfig
-    from sl4slam.synthetic import write_synthetic_sequence
 
     specs = run_specs(STAGE_DIR / "tum_rgbd_fr1_desk", DRY_FRAMES if dry_run else 0, CAP_GB)
     if frames > 0:  # the synthetic world: rendered here, before the runs (about 0.2 s a frame on one core)
         size = DRY_WORLD if dry_run else {"frames": frames, "width": 640, "height": 480}
-        world = write_synthetic_sequence(work / "world", num_frames=size["frames"], width=size["width"],
-                                         height=size["height"], seed=0, overwrite=True)
+        world = synthetic_world(size["width"], size["height"], size["frames"], folder=work / "world")
         specs.append({**specs[0], "name": f"synthetic world ({size['frames']} frames, {size['width']}x{size['height']}), "
                       "overlapped", "source": str(world), "max_frames": 0})
     depth = VGGTModelConfig(**model_config).depth

@@ -11,7 +11,7 @@ world points (distance relative to the point's depth), mask, colours (JPEG) and 
 A short table of alternatives (depth along the world camera's axis, raw float16 depth, other JPEG
 settings) measured on the same keyframes justifies the choices.
 
-Writes ``benchmarks/results/keyframe_format.md``.
+Writes ``benchmarks/results/keyframe_format.md`` (``--out`` for another file).
 Usage: ``python benchmarks/bench_keyframe_format.py [--width 518] [--height 392] [--synthetic-frames 90]``.
 """
 
@@ -22,8 +22,6 @@ import os
 import platform
 import shutil
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 import zipfile
@@ -33,21 +31,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+from harness import (date_text, result_file, run_sequence, shared_sequence, simulated_config, synthetic_world,
+                     write_report)
+from sl4slam.geometry import se3_inverse
+from sl4slam.result.outputs import keyframe_world_points, write_keyframe_file
+from sl4slam.result.reading import JPEG_QUALITY, load_result
 
-from _report import write_report  # noqa: E402  (benchmarks/ is on sys.path)
-
-from sl4slam.config import SLAMConfig  # noqa: E402
-from sl4slam.geometry import se3_inverse  # noqa: E402
-from sl4slam.io import open_source  # noqa: E402
-from sl4slam.pipeline import SLAMPipeline  # noqa: E402
-from sl4slam.result.outputs import _write_compact_keyframe, _write_keyframe, keyframe_world_points  # noqa: E402
-from sl4slam.result.reading import JPEG_QUALITY, load_result  # noqa: E402
-from sl4slam.synthetic import write_synthetic_sequence  # noqa: E402
-
-TUM = HERE.parent.parent / "shared" / "data" / "tum_rgbd_fr1_xyz_first37"
-RESULTS = HERE / "results" / "keyframe_format.md"
+TUM = shared_sequence("xyz37")
+RESULTS = result_file("keyframe_format")
 TUM_K = (517.3, 516.5, 318.6, 255.3)  # fr1 RGB camera at 640x480 (CALIBRATION.txt)
 
 
@@ -70,16 +61,11 @@ def resized_tum(target: Path, width: int, height: int) -> Path:
     return target
 
 
-def run_config(tau_disparity: float) -> SLAMConfig:
-    config = SLAMConfig(frontend="simulated")
-    config.sim.profile = "vggt"
-    config.sim.perspective = 0.1
-    config.backend.graph = "submap"
-    config.upgrade.mode = "off"
-    config.submap.size = 4
-    config.retrieval.kind = "none"
-    config.keyframes.tau_disparity = tau_disparity
-    return config
+def run_config(tau_disparity: float):
+    """The run's settings: a projective world map (submap graph, perspective 0.1, no metric upgrade)."""
+    return simulated_config({"sim.profile": "vggt", "sim.perspective": 0.1, "backend.graph": "submap",
+                             "upgrade.mode": "off", "submap.size": 4, "retrieval.kind": "none",
+                             "keyframes.tau_disparity": tau_disparity})
 
 
 def member_bytes(path: Path) -> dict[str, int]:
@@ -89,10 +75,8 @@ def member_bytes(path: Path) -> dict[str, int]:
 
 def measure(name: str, sequence: Path, tau_disparity: float, scratch: Path, repeats: int) -> dict:
     """Run once, write every keyframe in both layouts (``repeats`` times, timed), read them back."""
-    config = run_config(tau_disparity)
-    result = SLAMPipeline(config, retrieval=None).run(open_source(str(sequence)), progress=False)
+    result = run_sequence(run_config(tau_disparity), sequence, retrieval=None).result
     folders = {layout: scratch / name / layout / "keyframes" for layout in ("full", "compact")}
-    writers = {"full": _write_keyframe, "compact": _write_compact_keyframe}
     write_ms = {layout: [] for layout in folders}  # (wall, CPU) per file
     for folder in folders.values():
         folder.mkdir(parents=True)
@@ -103,7 +87,7 @@ def measure(name: str, sequence: Path, tau_disparity: float, scratch: Path, repe
         for _ in range(repeats):
             for layout, folder in folders.items():
                 start, cpu = time.perf_counter(), time.process_time()
-                writers[layout](folder, keyframe, X, valid, colors, result, index, H)
+                write_keyframe_file(layout, folder, keyframe, X, valid, colors, result, index, H)
                 write_ms[layout].append((1000 * (time.perf_counter() - start), 1000 * (time.process_time() - cpu)))
     for layout, folder in folders.items():  # load_result needs the folder's trajectory and summary
         shutil.copy(sequence / "groundtruth.txt", folder.parent / "trajectory.txt")
@@ -205,6 +189,7 @@ def main() -> None:
     parser.add_argument("--height", type=int, default=392)
     parser.add_argument("--synthetic-frames", type=int, default=90)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as scratch:
@@ -212,11 +197,10 @@ def main() -> None:
         if TUM.is_dir():
             tum = resized_tum(scratch / "tum", args.width, args.height)
             rows.append(measure("TUM fr1/xyz excerpt (real images, 37 frames)", tum, 10.0, scratch, args.repeats))
-        world = write_synthetic_sequence(scratch / "world", num_frames=args.synthetic_frames, width=args.width,
-                                         height=args.height, seed=0)
+        world = synthetic_world(args.width, args.height, frames=args.synthetic_frames)
         rows.append(measure(f"synthetic world ({args.synthetic_frames} frames)", world, 0.06 * args.width, scratch,
                             args.repeats))
-    date = subprocess.run(["date"], capture_output=True, text=True).stdout.strip()
+    date = date_text()
     load = os.getloadavg()[0]
     lines = [
         "## Keyframe files: compact and full layouts",
@@ -264,7 +248,7 @@ def main() -> None:
               "run's to the last bit. Storing the depth along the world camera's axis instead needs a second "
               "rounding (float16) or twice the bytes (float32), because the projective map changes every pixel's "
               "depth by its own factor."]
-    write_report(RESULTS, lines)
+    write_report(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ Three parts, each a section of the report:
   graph size, process peak memory, the final polish and the ATE; the keyframe graph twice:
   as configured (revisits of closed places held as priors in iSAM2) and with every loop in iSAM2;
 - **verification**: the attention loop check (the simulated frontend's true-overlap stand-in for
-  VGGT's image-match ratio) at false-loop rates 0.1 and 0.3 (``--sim-false-loop-rate``): injected
+  VGGT's image-match ratio) at false-loop rates 0.1 and 0.3 (``--false-loop-rate``): injected
   false loops rejected, and true loops accepted, with the check on and off, on three laps of the
   synthetic world (160x120) so that retrieval proposes many loops.
 
@@ -47,21 +47,11 @@ from typing import Callable, Iterator  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from sl4slam.backend import Backend, BackendUpdateError, make_backend  # noqa: E402
-from sl4slam.config import SLAMConfig, apply_sim_profile  # noqa: E402
-from sl4slam.io import open_source  # noqa: E402
-from sl4slam.result.outputs import compute_ate, peak_memory  # noqa: E402
-from sl4slam.pipeline import SLAMPipeline  # noqa: E402
-from sl4slam.synthetic import write_synthetic_sequence  # noqa: E402
+from harness import (LapSource, add_parallel_arguments, grid, loop_counts, make_pipeline, parallel_options, result_ate,  # noqa: E402
+                     result_file, run_all, run_sequence, shared_sequence, simulated_config, synthetic_world,
+                     write_report)
 
-from _report import write_report  # noqa: E402 (benchmarks/ is on sys.path: the scripts run from there)
-
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from bench_pipeline import LapSource  # noqa: E402  (the same lap replay as the pipeline benchmark)
-
-TUM = {"TUM fr1/xyz (37 frames)": HERE.parents[1] / "shared" / "data" / "tum_rgbd_fr1_xyz_first37",
-       "TUM fr1/desk": HERE.parents[1] / "shared" / "data" / "tum_rgbd_fr1_desk"}
+TUM = {"TUM fr1/xyz (37 frames)": shared_sequence("xyz37"), "TUM fr1/desk": shared_sequence("desk")}
 WORLDS = {"synthetic": "synthetic world", "xyz": "TUM fr1/xyz (37 frames)", "desk": "TUM fr1/desk"}
 DESIGNS = {
     # name: (graph, alignment model, what it is)
@@ -75,31 +65,24 @@ DESIGNS = {
 }
 
 
-def design_config(design: str, profile: str, seed: int, retrieval: str = "orb",
-                  perspective: float | None = None) -> SLAMConfig:
+def design_config(design: str, profile: str, seed: int, retrieval: str = "orb", perspective: float | None = None,
+                  **settings):
+    """The config of a graph design under a simulator profile (the metric upgrade off), ``settings`` on top."""
     graph, model, _ = DESIGNS[design]
-    config = SLAMConfig(frontend="simulated")
-    apply_sim_profile(config.sim, profile)
-    if perspective is not None:
-        config.sim.perspective = perspective
-    config.sim.seed = seed
-    config.backend.graph = graph
-    config.alignment.model = model
-    config.retrieval.kind = retrieval
-    config.upgrade.mode = "off"  # the trajectory is Sim(3)-aligned for the ATE: the upgrade changes nothing there
-    return config
+    distortion = {"sim.perspective": perspective} if perspective is not None else {}
+    return simulated_config({"sim.profile": profile, **distortion, "sim.seed": seed, "backend.graph": graph,
+                             "alignment.model": model, "retrieval.kind": retrieval,
+                             # the trajectory is Sim(3)-aligned for the ATE: the upgrade changes nothing there
+                             "upgrade.mode": "off", **settings})
 
 
-def worlds(work: Path, names: list[str]) -> dict[str, Path]:
+def worlds(names: list[str]) -> dict[str, Path]:
     """The accuracy part's sequences (``names`` from :data:`WORLDS`); TUM ones only where present."""
     out = {}
     for name in names:
         title = WORLDS[name]
         if name == "synthetic":
-            synthetic = work / "synthetic_320x240"
-            if not (synthetic / "groundtruth.txt").is_file():
-                write_synthetic_sequence(synthetic, num_frames=600, width=320, height=240, seed=0)
-            out[title] = synthetic
+            out[title] = synthetic_world(320, 240)
         elif (TUM[title] / "groundtruth.txt").is_file():
             out[title] = TUM[title]
     return out
@@ -107,31 +90,29 @@ def worlds(work: Path, names: list[str]) -> dict[str, Path]:
 
 # ---------------------------------------------------------------------------- accuracy
 def accuracy_run(world: Path, design: str, profile: str, seed: int, perspective: float | None = None) -> dict:
-    config = design_config(design, profile, seed, perspective=perspective)
-    start = time.perf_counter()
-    pipeline = SLAMPipeline(config)
-    result = pipeline.run(open_source(str(world)), progress=False)
+    run = run_sequence(design_config(design, profile, seed, perspective=perspective), world)
+    result = run.result
     edges = result.edges
     planar = [e for e in edges if e.kind == "odometry" and e.accepted and e.fallback
               and ("flat" in e.fallback or "planar" in e.fallback)]
-    return {"ate": compute_ate(result).rmse, "loops": result.stats["loops"], "rejected": result.stats["loops_rejected"],
+    return {"ate": run.ate(), "loops": result.stats["loops"], "rejected": result.stats["loops_rejected"],
             "fallbacks": result.stats["fallbacks"], "planar_fallbacks": len(planar), "segments": result.stats["segments"],
-            "submaps": result.stats["submaps"], "seconds": time.perf_counter() - start,
+            "submaps": result.stats["submaps"], "seconds": run.seconds,
             "reasons": sorted({e.reason.split(" (")[0] for e in edges if e.kind == "loop" and not e.accepted and e.reason})}
 
 
-def accuracy(work: Path, profile: str, seeds: int, names: list[str], designs: list[str],
-             perspective: float | None = None) -> list[str]:
+def accuracy(profile: str, seeds: int, names: list[str], designs: list[str], perspective: float | None = None,
+             parallel: dict | None = None) -> list[str]:
     setting = f"{profile} profile" + (f", perspective {perspective}" if perspective is not None else "")
     lines = [f"### Accuracy ({setting}, {seeds} seeds)", "",
              "ATE RMSE in metres (`evo_ape -as`), median and range over the seeds; counts are means per run. "
              "Fallbacks: odometry edges a weaker model measured (planar: those on a flat or planar shared frame).", ""]
-    for world_name, world in worlds(work, names).items():
-        table: dict[str, list[dict]] = {}
-        for design in designs:
-            table[design] = [accuracy_run(world, design, profile, seed, perspective) for seed in range(seeds)]
-            ates = [r["ate"] for r in table[design]]
-            print(f"{world_name} {design}: ATE median {np.median(ates):.4f}", flush=True)
+    for world_name, world in worlds(names).items():
+        outcomes = run_all(accuracy_run, [(world, design, profile, seed, perspective) for design in designs
+                                          for seed in range(seeds)], **(parallel or {}))
+        table = {design: outcomes[number * seeds:(number + 1) * seeds] for number, design in enumerate(designs)}
+        for design, runs in table.items():
+            print(f"{world_name} {design}: ATE median {np.median([r['ate'] for r in runs]):.4f}", flush=True)
         base = np.median([r["ate"] for r in table[designs[0]]])
         lines += [f"**{world_name}** ({table[designs[0]][0]['submaps']} submaps)", "",
                   f"| design | ATE median | range | / {designs[0]} | loops accepted | rejected | fallbacks (planar) "
@@ -155,31 +136,24 @@ def accuracy(work: Path, profile: str, seeds: int, names: list[str], designs: li
 
 
 # ---------------------------------------------------------------------------- cost
-def small_world(work: Path) -> Path:
-    world = work / "synthetic_160x120"
-    if not (world / "groundtruth.txt").is_file():
-        write_synthetic_sequence(world, num_frames=600, width=160, height=120, seed=0)
-    return world
+def small_world() -> Path:
+    """The lap replays' world: 600 frames at 160x120."""
+    return synthetic_world(160, 120)
 
 
-def lap_config(design: str, profile: str, seed: int, **sim) -> SLAMConfig:
-    config = design_config(design, profile, seed)
-    config.keyframes.tau_disparity = 12.0  # the 160x120 world: half the pixels of the 320x240 threshold
-    for key, value in sim.items():
-        setattr(config.sim, key, value)
-    return config
+def lap_config(design: str, profile: str, seed: int, **settings):
+    """The lap replay's config: the 160x120 world's keyframe threshold (half the pixels of the 320x240
+    threshold), one submap after the other (each submap done when its frame is fed), ``settings`` on top."""
+    return design_config(design, profile, seed, **{"keyframes.tau_disparity": 12.0, "overlap": False, **settings})
 
 
-def lap_replay(world: Path, config: SLAMConfig,
-               prepare: Callable[[SLAMPipeline], None] | None = None) -> Iterator[SLAMPipeline]:
+def lap_replay(world: Path, config, prepare: Callable | None = None) -> Iterator:
     """The lap replay through the pipeline, yielding the pipeline after each submap; ``prepare`` is
     called on the pipeline before the first."""
-    base = open_source(str(world))
-    frames = {i: base.get(i) for i in range(len(base))}  # decoded once: the replay does not time PNG decoding
-    base.get = frames.__getitem__  # type: ignore[method-assign]
-    source = LapSource(base, laps=100_000)
-    config.overlap = False  # one submap after the other: each submap done when its frame is fed
-    pipeline = SLAMPipeline(config)
+    from sl4slam.io import open_source
+
+    source = LapSource(open_source(str(world)), laps=100_000, preload=True)  # the replay does not time PNG decoding
+    pipeline = make_pipeline(config)
     pipeline.start(source, progress=False)
     if prepare is not None:
         prepare(pipeline)
@@ -190,7 +164,7 @@ def lap_replay(world: Path, config: SLAMConfig,
             yield pipeline
 
 
-def advance_to(replay: Iterator[SLAMPipeline], submaps: int) -> SLAMPipeline:
+def advance_to(replay: Iterator, submaps: int):
     """Advance a :func:`lap_replay` until ``submaps`` submaps are done."""
     for pipeline in replay:
         if pipeline.num_submaps % 50 == 0:
@@ -200,8 +174,7 @@ def advance_to(replay: Iterator[SLAMPipeline], submaps: int) -> SLAMPipeline:
     raise AssertionError("the lap replay is endless")
 
 
-def replay_laps(world: Path, config: SLAMConfig, submaps: int,
-                prepare: Callable[[SLAMPipeline], None] | None = None) -> SLAMPipeline:
+def replay_laps(world: Path, config, submaps: int, prepare: Callable | None = None):
     """Feed the lap replay through the pipeline until ``submaps`` submaps are done."""
     return advance_to(lap_replay(world, config, prepare), submaps)
 
@@ -232,20 +205,20 @@ def side_by_side(advance_early: Callable[[], None], advance_late: Callable[[], N
         gc.unfreeze()
 
 
-def cost_child(work: Path, graph: str, profile: str, submaps: int) -> dict:
+def cost_child(graph: str, profile: str, submaps: int) -> dict:
     """One graph's lap replay (run in a process of its own, so the peak memory is its own).
 
     The early and the late submaps are timed side by side: one replay is run to ``submaps - WINDOW``
     submaps, a second, identical replay (same seeds) to ``EARLY[0]``, and then the two advance in
     turn, a submap each (:func:`side_by_side`), so that both ends of the map are timed within the
     same seconds and the machine's drift in speed over minutes cancels from the ratio."""
+    from sl4slam.result.outputs import peak_memory
+
     design, exact = COST_GRAPHS[graph]
 
-    def replay() -> Iterator[SLAMPipeline]:
-        config = lap_config(design, profile, 0)
-        if exact:
-            config.backend.revisit_priors = False
-        return lap_replay(small_world(work), config)
+    def replay() -> Iterator:
+        every_loop_exact = {"backend.revisit_priors": False} if exact else {}
+        return lap_replay(small_world(), lap_config(design, profile, 0, **every_loop_exact))
 
     late_replay, early_replay = replay(), replay()
     late, early = advance_to(late_replay, submaps - WINDOW), advance_to(early_replay, EARLY[0])
@@ -254,7 +227,7 @@ def cost_child(work: Path, graph: str, profile: str, submaps: int) -> dict:
     result = late.result()
     polish = time.perf_counter() - start
 
-    def window(pipeline: SLAMPipeline) -> dict:
+    def window(pipeline) -> dict:
         per = pipeline.ledger.submap_seconds[-WINDOW:]
         return {"backend": [s.get("backend", 0.0) for s in per], "loops": [s.get("loops", 0.0) for s in per],
                 "closed": list(pipeline.ledger.submap_loops[-WINDOW:])}
@@ -263,7 +236,7 @@ def cost_child(work: Path, graph: str, profile: str, submaps: int) -> dict:
     return {"early": window(early), "late": window(late), "nodes": nodes, "keyframes": len(late.keyframes),
             "segments": len(late.backend.segments),
             "failed_updates": sum(1 for e in late.edges if e.reason and "could not be solved" in e.reason),
-            "loops_total": late.num_loops, "polish": polish, "ate": compute_ate(result).rmse,
+            "loops_total": late.num_loops, "polish": polish, "ate": result_ate(result).rmse,
             "revisits": getattr(getattr(late.backend, "nodes", late.backend), "num_revisit_priors", 0),
             **peak_memory()}
 
@@ -277,7 +250,7 @@ BACKEND_SETTINGS = {
 BACKEND_REPEATS = 3
 
 
-def record_backend_calls(pipeline: SLAMPipeline) -> list[list[tuple]]:
+def record_backend_calls(pipeline) -> list[list[tuple]]:
     """Record every graph call the pipeline makes, one list per submap (from its ``add_submap``)."""
     per_submap: list[list[tuple]] = []
     backend = pipeline.backend
@@ -294,8 +267,10 @@ def record_backend_calls(pipeline: SLAMPipeline) -> list[list[tuple]]:
     return per_submap
 
 
-def replay_calls(backend: Backend, calls: list[tuple]) -> float:
+def replay_calls(backend, calls: list[tuple]) -> float:
     """Make one submap's recorded graph calls; returns their wall time in seconds."""
+    from sl4slam.backend import BackendUpdateError
+
     start = time.perf_counter()
     for name, args, kwargs in calls:
         try:
@@ -305,13 +280,16 @@ def replay_calls(backend: Backend, calls: list[tuple]) -> float:
     return time.perf_counter() - start
 
 
-def backend_child(work: Path, profile: str, submaps: int) -> dict:
+def backend_child(profile: str, submaps: int) -> dict:
     """The keyframe graph's own work, without the pipeline around it: the graph calls of the lap
     replay are recorded, then replayed into fresh graphs per setting, early and late side by side
     (as in :func:`cost_child`), ``BACKEND_REPEATS`` times."""
+    from sl4slam.backend import make_backend
+
     config = lap_config("keyframe", profile, 0)
     recorder: list[list[list[tuple]]] = []
-    replay_laps(small_world(work), config, submaps, prepare=lambda pipeline: recorder.append(record_backend_calls(pipeline)))
+    replay_laps(small_world(), config, submaps,
+                prepare=lambda pipeline: recorder.append(record_backend_calls(pipeline)))
     calls = recorder[0]
     out = {}
     for setting, overrides in BACKEND_SETTINGS.items():
@@ -345,13 +323,13 @@ def backend_rows(data: dict) -> list[str]:
     return rows
 
 
-def cost(work: Path, profile: str, submaps: int) -> list[str]:
-    small_world(work)
+def cost(profile: str, submaps: int) -> list[str]:
+    small_world()
     rows = []
     for design in COST_GRAPHS:
         print(f"cost: {design} graph, {submaps} submaps", flush=True)
         out = subprocess.run([sys.executable, __file__, "--cost-child", design, "--profile", profile, "--submaps",
-                              str(submaps), "--work", str(work)], check=True, capture_output=True, text=True)
+                              str(submaps)], check=True, capture_output=True, text=True)
         data = json.loads(out.stdout.strip().splitlines()[-1])
         ms = {end: {key: np.array(data[end][key]) * 1000 for key in ("backend", "loops")} for end in ("early", "late")}
         for end in ms.values():
@@ -378,13 +356,13 @@ def cost(work: Path, profile: str, submaps: int) -> list[str]:
             "loops late / early | all late / early | loops closed | revisit priors | final polish (ms) | ATE | "
             "peak RSS (MiB) | map segments | failed graph updates |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|", *rows, "",
-            *backend_section(work, profile, submaps)]
+            *backend_section(profile, submaps)]
 
 
-def backend_section(work: Path, profile: str, submaps: int) -> list[str]:
+def backend_section(profile: str, submaps: int) -> list[str]:
     print(f"cost: the keyframe graph alone, {submaps} submaps", flush=True)
-    out = subprocess.run([sys.executable, __file__, "--backend-child", "--profile", profile, "--submaps", str(submaps),
-                          "--work", str(work)], check=True, capture_output=True, text=True)
+    out = subprocess.run([sys.executable, __file__, "--backend-child", "--profile", profile, "--submaps", str(submaps)],
+                         check=True, capture_output=True, text=True)
     data = json.loads(out.stdout.strip().splitlines()[-1])
     return [f"**The keyframe graph alone.** The graph calls of the keyframe replay (adding each submap, the loop "
             f"chi-squares, the loops, the iSAM2 updates) recorded and made again into fresh graphs, without the "
@@ -396,31 +374,29 @@ def backend_section(work: Path, profile: str, submaps: int) -> list[str]:
 
 
 # ---------------------------------------------------------------------------- verification
-def verification_run(work: Path, rate: float, attention: str, seed: int, design: str, laps_submaps: int) -> dict:
-    config = lap_config(design, "vggt", seed, false_loop_rate=rate)
-    config.loops.verify_attention = attention
-    pipeline = replay_laps(small_world(work), config, laps_submaps)
-    injected = set(pipeline.retrieval.injected)
-    loops = [e for e in pipeline.edges if e.kind == "loop"]
-    false = [e for e in loops if (e.query_frame, e.frame_index) in injected]
-    true = [e for e in loops if (e.query_frame, e.frame_index) not in injected]
-    return {"false": len(false), "false_rejected": sum(not e.accepted for e in false),
-            "false_by_attention": sum(bool(e.reason and "attention" in e.reason) for e in false),
-            "true": len(true), "true_accepted": sum(e.accepted for e in true),
-            "true_by_attention": sum(bool(e.reason and "attention" in e.reason) for e in true)}
+VERIFICATION_GRID = grid({"false_loops.rate": [0.1, 0.3], "loops.verify_attention": ["on", "off"]})
+"""The verification part's settings: false-loop rates, each with the attention check on and off."""
 
 
-def verification(work: Path, seeds: int, submaps: int, graphs: list[str]) -> list[str]:
+def verification_run(point: dict, seed: int, design: str, laps_submaps: int) -> dict:
+    config = lap_config(design, "vggt", seed, **point, **{"false_loops.seed": seed})
+    pipeline = replay_laps(small_world(), config, laps_submaps)
+    counts = loop_counts(pipeline.edges, pipeline.retrieval)
+    return {key: counts[key] for key in ("false", "false_rejected", "false_by_attention", "true", "true_accepted",
+                                         "true_by_attention")}
+
+
+def verification(seeds: int, submaps: int, graphs: list[str]) -> list[str]:
     rows = []
     for design in graphs:
-        for rate in (0.1, 0.3):
-            for attention in ("on", "off"):
-                runs = [verification_run(work, rate, attention, seed, design, submaps) for seed in range(seeds)]
-                total = {k: sum(r[k] for r in runs) for k in runs[0]}
-                print(f"verification {design} rate {rate} attention {attention}: {total}", flush=True)
-                rows.append(f"| {design} | {rate} | {attention} | {total['false']} | {total['false_rejected']} "
-                            f"({total['false_by_attention']} by attention) | {total['true']} | {total['true_accepted']} "
-                            f"({total['true_by_attention']} rejected by attention) |")
+        for point in VERIFICATION_GRID:
+            rate, attention = point["false_loops.rate"], point["loops.verify_attention"]
+            runs = [verification_run(point, seed, design, submaps) for seed in range(seeds)]
+            total = {k: sum(r[k] for r in runs) for k in runs[0]}
+            print(f"verification {design} rate {rate} attention {attention}: {total}", flush=True)
+            rows.append(f"| {design} | {rate} | {attention} | {total['false']} | {total['false_rejected']} "
+                        f"({total['false_by_attention']} by attention) | {total['true']} | {total['true_accepted']} "
+                        f"({total['true_by_attention']} rejected by attention) |")
     return ["### Attention loop check against false loops", "",
             f"The synthetic world (160x120) replayed for {submaps} submaps (about three laps, so retrieval proposes "
             f"many loops), `vggt` profile, {seeds} seeds summed. False loops: proposals the false-loop wrapper replaced "
@@ -445,30 +421,29 @@ def main() -> None:
     parser.add_argument("--parts", default="accuracy,cost,verification")
     parser.add_argument("--worlds", default="synthetic,xyz,desk", help="accuracy part: " + ", ".join(WORLDS))
     parser.add_argument("--designs", default=",".join(DESIGNS), help="accuracy part: " + ", ".join(DESIGNS))
-    parser.add_argument("--work", default=str(HERE / "out" / "keyframe_graph"))
-    parser.add_argument("--out", default=str(HERE / "results" / "keyframe_graph.md"))
+    add_parallel_arguments(parser, "--jobs", 1)
+    parser.add_argument("--work", default=None, help=argparse.SUPPRESS)  # older command lines (worlds are shared now)
+    parser.add_argument("--out", default=str(result_file("keyframe_graph")))
     parser.add_argument("--cost-child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--backend-child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    work = Path(args.work)
-    work.mkdir(parents=True, exist_ok=True)
     if args.cost_child:
-        print(json.dumps(cost_child(work, args.cost_child, args.profile, args.submaps)))
+        print(json.dumps(cost_child(args.cost_child, args.profile, args.submaps)))
         return
     if args.backend_child:
-        print(json.dumps(backend_child(work, args.profile, args.submaps)))
+        print(json.dumps(backend_child(args.profile, args.submaps)))
         return
     start = time.perf_counter()
     load = os.getloadavg()[0]
     parts = args.parts.split(",")
     sections: list[str] = []
     if "accuracy" in parts:
-        sections += accuracy(work, args.profile, args.seeds, args.worlds.split(","), args.designs.split(","),
-                             args.perspective)
+        sections += accuracy(args.profile, args.seeds, args.worlds.split(","), args.designs.split(","),
+                             args.perspective, parallel_options(args))
     if "cost" in parts:
-        sections += cost(work, args.profile, args.submaps)
+        sections += cost(args.profile, args.submaps)
     if "verification" in parts:
-        sections += verification(work, args.verification_seeds or args.seeds, args.verification_submaps,
+        sections += verification(args.verification_seeds or args.seeds, args.verification_submaps,
                                  args.verification_graphs.split(","))
     lines = ["## Keyframe graph (VGGT-SLAM 2.0) vs submap graph (VGGT-SLAM)", "",
              f"Machine: {os.cpu_count()}-core {platform.machine()} CPU, no GPU, shared (load average {load:.1f} at the "

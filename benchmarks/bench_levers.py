@@ -28,19 +28,14 @@ import argparse  # noqa: E402
 import datetime  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from concurrent.futures import ProcessPoolExecutor, as_completed  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from _report import write_report  # noqa: E402
+from harness import (OUT, add_parallel_arguments, parallel_options, result_file, run_all, run_sequence,  # noqa: E402
+                     seed_settings, shared_sequence, simulated_config, synthetic_world, write_report)
 
-WORK = HERE / "out" / "levers"
-TUM_DESK = HERE.parents[1] / "shared" / "data" / "tum_rgbd_fr1_desk"
+WORK = OUT / "levers"
 WORLDS = {"synthetic": "synthetic world (600 frames, 320x240, one lap)", "desk": "TUM fr1/desk (613 frames)"}
 WINDOW_OFF = "its distortion common to a window (perspective, shear 0)"
 POSES_OFF = "its per-frame pose errors (camera rotation, translation 0)"
@@ -95,82 +90,52 @@ VARIANTS = {
 }
 
 
-def world_path(name: str) -> Path:
-    if name == "desk":
-        return TUM_DESK
-    from sl4slam.synthetic import write_synthetic_sequence
+BASELINE = {"backend.graph": "keyframe", "alignment.model": "calibration", "submap.overlap": 1, "submap.loop_frames": 1,
+            "upgrade.mode": "off"}
+"""The baseline's settings, pinned, so that the baseline stays VGGT-SLAM 2.0 whatever the defaults become."""
 
-    path = WORK / "synthetic_320x240"
-    if not (path / "groundtruth.txt").is_file():
-        write_synthetic_sequence(path, num_frames=600, width=320, height=240, seed=0)
-    return path
+
+def world_path(name: str) -> Path:
+    """The sequence of a world name: TUM fr1/desk, or the synthetic world at 320x240."""
+    return shared_sequence("desk") if name == "desk" else synthetic_world(320, 240)
+
+
+def variant_settings(variant: str) -> dict:
+    """The settings of a variant: on top of the library defaults (``__defaults__``) or of the baseline."""
+    settings, _ = VARIANTS[variant]
+    if settings.get("__defaults__"):
+        return {key: value for key, value in settings.items() if key != "__defaults__"}
+    chosen = {**BASELINE, **settings}
+    if settings.get("backend.graph") == "submap" or settings.get("backend.kind") == "sim3":
+        chosen.update({"alignment.model": "auto", "upgrade.mode": "auto"})
+        if settings.get("backend.kind") == "sim3":
+            chosen["backend.graph"] = "submap"
+    return chosen
 
 
 def make_config(profile: str, variant: str, seed: int):
-    from sl4slam.config import SLAMConfig
-
-    config = SLAMConfig(frontend="simulated")
+    """The config of one run: the profile's simulator, ORB retrieval, the seeds, the variant's settings."""
     sim_profile, magnitudes, _ = PROFILES[profile]
-    config.sim.profile, config.sim.seed = sim_profile, seed
-    for key, value in magnitudes.items():
-        setattr(config.sim, key, value)
-    config.retrieval.kind = "orb"
-    config.retrieval.seed = config.alignment.seed = config.false_loops.seed = seed
-    settings, _ = VARIANTS[variant]
-    if settings.get("__defaults__"):
-        for key, value in settings.items():
-            if key != "__defaults__":
-                section, _, name = key.partition(".")
-                setattr(getattr(config, section), name, value)
-    else:
-        # the baseline's settings, pinned, so that the baseline stays VGGT-SLAM 2.0 whatever the defaults become
-        config.backend.graph, config.alignment.model, config.submap.overlap = "keyframe", "calibration", 1
-        config.submap.loop_frames = 1
-        config.upgrade.mode = "off"
-        for key, value in settings.items():
-            section, _, name = key.partition(".")
-            setattr(getattr(config, section), name, value)
-        if settings.get("backend.graph") == "submap" or settings.get("backend.kind") == "sim3":
-            config.alignment.model, config.upgrade.mode = "auto", "auto"
-            if settings.get("backend.kind") == "sim3":
-                config.backend.graph = "submap"
-    return config
+    return simulated_config({"sim.profile": sim_profile, "sim.seed": seed,
+                             **{f"sim.{key}": value for key, value in magnitudes.items()}, "retrieval.kind": "orb",
+                             **seed_settings(seed, "retrieval.seed", "alignment.seed", "false_loops.seed"),
+                             **variant_settings(variant)})
 
 
 def one_run(world: str, profile: str, variant: str, seed: int) -> dict:
-    from sl4slam.io import open_source
-    from sl4slam.metrics import ate
-    from sl4slam.pipeline import SLAMPipeline
-    from sl4slam.resolve import resolve
-
-    config = make_config(profile, variant, seed)
-    resolved = resolve(config)
-    start = time.perf_counter()
-    pipeline = SLAMPipeline(resolved)
-    counted = {"frames": 0}
-    reconstruct = pipeline.frontend.reconstruct
-
-    def counting(frames, submap_id, **kwargs):  # the cost: frames the model is given
-        counted["frames"] += len(frames)
-        return reconstruct(frames, submap_id, **kwargs)
-
-    pipeline.frontend.reconstruct = counting
-    result = pipeline.run(open_source(str(world_path(world)), resolved.config.source), progress=False)
-    seconds = time.perf_counter() - start
-    sim3 = ate(result.timestamps, result.T_world_cam, result.timestamps, result.T_world_cam_gt)
-    se3 = ate(result.timestamps, result.T_world_cam, result.timestamps, result.T_world_cam_gt, correct_scale=False)
-    loops = [e for e in result.edges if e.kind == "loop"]
-    injected = set(getattr(pipeline.retrieval, "injected", []))
-    false = [e for e in loops if (e.query_frame, e.frame_index) in injected]
+    run = run_sequence(make_config(profile, variant, seed), world_path(world))
+    result = run.result
+    loops = run.loops()
     models = [e.model for e in result.edges if e.kind == "odometry" and e.accepted]
-    return {"world": world, "profile": profile, "variant": variant, "seed": seed, "ate": sim3.rmse, "ate_se3": se3.rmse,
-            "scale": sim3.scale, "keyframes": len(result.keyframes), "frames": result.stats["frames"],
-            "submaps": result.stats["submaps"], "loops": sum(e.accepted for e in loops), "proposed": len(loops),
-            "fallbacks": result.stats["fallbacks"], "segments": result.stats["segments"],
-            "sl4_links": models.count("sl4"), "links": len(models), "seconds": seconds,
+    return {"world": world, "profile": profile, "variant": variant, "seed": seed, "ate": run.ate(),
+            "ate_se3": run.ate(correct_scale=False), "scale": run.ate_result().scale,
+            "keyframes": len(result.keyframes),
+            "frames": result.stats["frames"], "submaps": result.stats["submaps"], "loops": loops["accepted"],
+            "proposed": loops["proposed"], "fallbacks": result.stats["fallbacks"], "segments": result.stats["segments"],
+            "sl4_links": models.count("sl4"), "links": len(models), "seconds": run.seconds,
             "frontend_seconds": result.stats["seconds_by_stage"].get("frontend", 0.0),
-            "frontend_frames": counted["frames"],
-            "false_proposed": len(false), "false_accepted": sum(e.accepted for e in false),
+            "frontend_frames": run.model_frames,
+            "false_proposed": loops["false"], "false_accepted": loops["false_accepted"],
             "date": str(datetime.date.today())}
 
 
@@ -179,26 +144,25 @@ def load_runs() -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
 
 
-def run_grid(worlds: list[str], profiles: list[str], variants: list[str], seeds: list[int], workers: int) -> None:
+def run_grid(worlds: list[str], profiles: list[str], variants: list[str], seeds: list[int], parallel: dict) -> None:
     WORK.mkdir(parents=True, exist_ok=True)
     for world in worlds:
         world_path(world)  # rendered once, before the workers start
     done = {(r["world"], r["profile"], r["variant"], r["seed"]) for r in load_runs()}
     todo = [(w, p, v, s) for w in worlds for p in profiles for s in seeds for v in variants if (w, p, v, s) not in done]
     print(f"{len(todo)} runs to do ({len(done)} cached)", flush=True)
-    with ProcessPoolExecutor(max_workers=workers) as pool, open(WORK / "runs.jsonl", "a") as log:
-        futures = {pool.submit(one_run, *task): task for task in todo}
-        for future in as_completed(futures):
-            task = futures[future]
-            try:
-                row = future.result()
-            except Exception as exc:  # a run that breaks is reported, the grid goes on
-                print(f"{task}: FAILED {type(exc).__name__}: {exc}", flush=True)
-                continue
+    with open(WORK / "runs.jsonl", "a") as log:
+
+        def record(index: int, row) -> None:
+            if isinstance(row, BaseException):  # a run that breaks is reported, the grid goes on
+                print(f"{todo[index]}: FAILED {type(row).__name__}: {row}", flush=True)
+                return
             log.write(json.dumps(row) + "\n")
             log.flush()
-            print(f"{task}: ATE {row['ate']:.4f} m, {row['loops']}/{row['proposed']} loops, {row['seconds']:.0f} s",
-                  flush=True)
+            print(f"{todo[index]}: ATE {row['ate']:.4f} m, {row['loops']}/{row['proposed']} loops, "
+                  f"{row['seconds']:.0f} s", flush=True)
+
+        run_all(one_run, todo, on_result=record, raise_errors=False, **parallel)
 
 
 def report(out: Path) -> None:
@@ -285,7 +249,7 @@ def report(out: Path) -> None:
               "frames, which keeps the window consistent inside: 0.3-0.8 degrees of disagreement under `strong`). "
               "The simulator's per-frame camera errors make windows disagree by 1.6-2.3 degrees under `vggt`, "
               "where it changes nothing.",
-              "- **edge weights** (`--backend-weighting auto`): links read from the cameras get one sigma, fitted "
+              "- **edge weights** (`--backend-weighting by-link`): links read from the cameras get one sigma, fitted "
               "links their points' evidence. It rests on the shared frames' camera errors being what a camera link "
               "errs by (in the simulator: `camera_rotation`, `camera_translation`, `focal_error` per frame), which "
               "the residuals of the frame's points cannot show because the model places its depth with the same "
@@ -363,14 +327,12 @@ def run_cost(world: str, profile: str, variants: list[str], seeds: list[int]) ->
     """Whole runs of two variants side by side: each seed's pair at once on two workers and nothing
     else, so both see the same load (the grid's "run s" column is whatever load the grid ran under)."""
     rows = []
-    with ProcessPoolExecutor(max_workers=2) as pool:
-        for seed in seeds:
-            pair = [pool.submit(one_run, world, profile, variant, seed) for variant in variants]
-            for future in pair:
-                row = future.result()
-                rows.append({k: row[k] for k in ("variant", "seed", "ate", "seconds", "frontend_frames", "keyframes")})
-                print(f"{world} {profile} {row['variant']} seed {seed}: {row['seconds']:.1f} s, ATE {row['ate']:.4f} m",
-                      flush=True)
+    world_path(world)
+    for seed in seeds:
+        for row in run_all(one_run, [(world, profile, variant, seed) for variant in variants], jobs=2):
+            rows.append({k: row[k] for k in ("variant", "seed", "ate", "seconds", "frontend_frames", "keyframes")})
+            print(f"{world} {profile} {row['variant']} seed {seed}: {row['seconds']:.1f} s, ATE {row['ate']:.4f} m",
+                  flush=True)
     WORK.mkdir(parents=True, exist_ok=True)
     (WORK / "cost.json").write_text(json.dumps({"world": world, "profile": profile, "date": str(datetime.date.today()),
                                                 "rows": rows}, indent=1))
@@ -403,17 +365,18 @@ def main() -> None:
     parser.add_argument("--profiles", default="vggt,hard,strong")
     parser.add_argument("--variants", default="baseline,submap,sim3,hybrid,known-k")
     parser.add_argument("--seeds", default="5", help="a count (seeds 0..n-1) or a list (0,3,4)")
-    parser.add_argument("--workers", type=int, default=2)
+    add_parallel_arguments(parser, "--workers", 2)
     parser.add_argument("--report", action="store_true", help="only write the report from the runs there are")
     parser.add_argument("--cost", action="store_true",
                         help="time two variants side by side (first world and profile) instead of the grid")
-    parser.add_argument("--out", type=Path, default=HERE / "results" / "levers.md")
+    parser.add_argument("--out", type=Path, default=result_file("levers"))
     args = parser.parse_args()
     seeds = list(range(int(args.seeds))) if "," not in args.seeds else [int(s) for s in args.seeds.split(",")]
     if args.cost:
         run_cost(args.worlds.split(",")[0], args.profiles.split(",")[0], args.variants.split(",")[:2], seeds)
     elif not args.report:
-        run_grid(args.worlds.split(","), args.profiles.split(","), args.variants.split(","), seeds, args.workers)
+        run_grid(args.worlds.split(","), args.profiles.split(","), args.variants.split(","), seeds,
+                 parallel_options(args, "--workers"))
     report(args.out)
 
 

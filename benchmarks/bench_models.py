@@ -25,12 +25,10 @@ import sys
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from _report import write_report  # noqa: E402
-from bench_da3 import _date, _frames, _reset_vm_hwm, _vm_hwm_bytes, machine  # noqa: E402
+from harness import (OUT, date_text, peak_rss_bytes, random_frames, reset_peak_rss, result_file, torch_machine,
+                     write_report)
 
-RECORDS = HERE / "out" / "models" / "records.jsonl"
+RECORDS = OUT / "models" / "records.jsonl"
 MODELS = ("vggt", "da3-small", "da3-base", "da3-large", "da3-giant", "pi3", "pi3x")
 SEED = 0
 
@@ -76,18 +74,19 @@ def child(name: str, frames: int) -> dict:
     start = time.perf_counter()
     frontend = build_frontend(name)
     build_s = time.perf_counter() - start
-    images = _frames(frames, seed=2)
+    images = random_frames(frames, seed=2)
     window = [Frame(index=i, timestamp=float(i), rgb=image) for i, image in enumerate(images)]
     with torch.inference_mode():
         frontend.reconstruct(window[:2], submap_id=0)  # warm-up: kernels and allocator
-        _reset_vm_hwm()
+        reset_peak_rss()
         start = time.perf_counter()
         prediction = frontend.reconstruct(window, submap_id=1)
         seconds = time.perf_counter() - start
     finite = all(bool(np.isfinite(a).all()) for a in (prediction.depth, prediction.K, prediction.T_cam_submap))
     parameters = sum(p.numel() for p in frontend.model.parameters()) if hasattr(frontend, "model") else None
     return {"model": name, "frames": frames, "grid": list(prediction.depth.shape[1:]), "seconds": seconds,
-            "build_s": build_s, "peak_bytes": _vm_hwm_bytes(), "parameters": parameters, "finite": finite,
+            "build_s": build_s, "peak_bytes": peak_rss_bytes(fallback=False), "parameters": parameters,
+            "finite": finite,
             "threads": torch.get_num_threads(), "load": os.getloadavg()[0]}
 
 
@@ -107,7 +106,7 @@ def run_child(name: str, frames: int, threads: int, timeout: float) -> dict:
 def report(records: list[dict], command: str, threads: int) -> list[str]:
     base = {r["frames"]: r["seconds"] for r in records if r["model"] == "vggt" and "seconds" in r}
     lines = ["## Every model's frontend, one submap (random full-size weights, fp32, CPU)", "",
-             f"Machine: {machine()}; {threads} torch threads; {_date()}. Command: `{command}`.", "",
+             f"Machine: {torch_machine()}; {threads} torch threads; {date_text()}. Command: `{command}`.", "",
              "Whole `reconstruct` of one window of random 640x480 frames at the model's native grid, after a "
              "two-frame warm-up; peak = resident high-water mark over the call (weights included). Each model in "
              "its own process, one after the other. Ours against each model's authors' code: `da3.md`, `pi3.md`.",
@@ -132,7 +131,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=17)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per model")
-    parser.add_argument("--out", type=Path, default=HERE / "results" / "models.md")
+    parser.add_argument("--out", type=Path, default=result_file("models"))
     parser.add_argument("--report", action="store_true", help="only write the report from the kept records")
     parser.add_argument("--report-command", default="--frames 17", help="the command line the records came from")
     parser.add_argument("--child", help=argparse.SUPPRESS)

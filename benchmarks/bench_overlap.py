@@ -21,15 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sl4slam.config import SLAMConfig
+from harness import TimedSource, result_file, run_sequence, shared_sequence, simulated_config, write_report
 from sl4slam.frontend.simulated import SimulatedFrontend
-from sl4slam.io import open_source
-from sl4slam.pipeline import SLAMPipeline
 
-from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
-from _timing import TimedSource
-
-HERE = Path(__file__).resolve().parent
 VGGT_SECONDS_17 = 0.43  # VGGT-1B forward of 17 frames, H100, bf16 (benchmarks/results/vggt.md)
 
 
@@ -44,9 +38,10 @@ class ModelStandIn(SimulatedFrontend):
 
 
 def one_run(sequence: Path, overlap: bool, profile: str) -> dict:
-    config = SLAMConfig(frontend="simulated", overlap=overlap)
-    config.sim.profile = profile
-    config.retrieval.kind = "orb"
+    """One run of ``sequence`` with the model stand-in; its wall time, sizes and keyframe latency."""
+    from sl4slam.io import open_source
+
+    config = simulated_config({"overlap": overlap, "sim.profile": profile, "retrieval.kind": "orb"})
     arrivals: dict[int, float] = {}
     latencies: list[float] = []
 
@@ -54,22 +49,20 @@ def one_run(sequence: Path, overlap: bool, profile: str) -> dict:
         now = time.perf_counter()
         latencies.extend(now - arrivals[k.frame_index] for k in pipeline.keyframes if k.submap_id == submap_id)
 
-    pipeline = SLAMPipeline(config, ModelStandIn(config.sim), on_submap=on_submap)
-    source = TimedSource(open_source(str(sequence), config.source), arrivals)
-    start = time.perf_counter()
-    result = pipeline.run(source, progress=False)
-    seconds = time.perf_counter() - start
-    return {"seconds": seconds, "frames": len(arrivals), "keyframes": len(result.keyframes),
+    run = run_sequence(config, source=TimedSource(open_source(str(sequence), config.source), arrivals),
+                       frontend=ModelStandIn(config.sim), on_submap=on_submap)
+    result = run.result
+    return {"seconds": run.seconds, "frames": len(arrivals), "keyframes": len(result.keyframes),
             "submaps": result.stats["submaps"], "latency": float(np.median(latencies)),
             "trajectory": result.T_world_cam}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sequence", type=Path, default=HERE.parent.parent / "shared" / "data" / "tum_rgbd_fr1_desk")
+    parser.add_argument("--sequence", type=Path, default=shared_sequence("desk"))
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--profile", default="vggt")
-    parser.add_argument("--out", type=Path, default=HERE / "results" / "overlap.md")
+    parser.add_argument("--out", type=Path, default=result_file("overlap"))
     args = parser.parse_args()
     runs: dict[bool, list[dict]] = {False: [], True: []}
     for _ in range(args.repeats):

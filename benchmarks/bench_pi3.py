@@ -32,57 +32,22 @@ import json
 import os
 import platform
 import re
-import resource
 import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import write_report  # noqa: E402
+from harness import (cpu_model, cpu_seconds, date_text, memory_gib, peak_rss_bytes, replace_section, reset_peak_rss,
+                     result_file, rss_bytes)
 
-RESULTS = Path(__file__).resolve().parent / "results" / "pi3.md"
+RESULTS = result_file("pi3")
 GIB = 1024**3
 FRAME_HW = (480, 640)
 SEED = 7
 
 
 # ---- helpers --------------------------------------------------------------------------------------
-
-def _peak_rss_bytes() -> int:
-    with open("/proc/self/status") as handle:
-        for line in handle:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) * 1024
-    return 0
-
-
-def _reset_peak_rss() -> bool:
-    try:
-        with open("/proc/self/clear_refs", "w") as handle:
-            handle.write("5")
-        return True
-    except OSError:
-        return False
-
-
-def _cpu_seconds() -> float:
-    """User + system CPU time of this process so far (all its threads)."""
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    return usage.ru_utime + usage.ru_stime
-
-
-def _rss_of(pid: int) -> int:
-    try:
-        with open(f"/proc/{pid}/status") as handle:
-            for line in handle:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
-
 
 def synthetic_frames(count: int, seed: int = SEED):
     """``count`` 640x480 uint8 RGB frames of a smooth random pattern (a camera panning over it)."""
@@ -135,22 +100,15 @@ def perturb(model, seed: int) -> None:
 
 
 def machine() -> str:
+    """The machine in one line (cores, CPU and its torch capability, memory, torch and its threads, Python)."""
     import torch
 
-    name = platform.processor() or "cpu"
-    try:
-        info = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
-        model = re.search(r"Model name:\s*(.+)", info)
-        name = model.group(1).strip() if model else name
-    except OSError:
-        pass
-    memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / GIB
-    return (f"{os.cpu_count()}-core {name} ({torch.backends.cpu.get_cpu_capability()}), {memory:.0f} GiB RAM, "
-            f"torch {torch.__version__}, {torch.get_num_threads()} threads, Python {platform.python_version()}")
+    return (f"{os.cpu_count()}-core {cpu_model()} ({torch.backends.cpu.get_cpu_capability()}), "
+            f"{memory_gib():.0f} GiB RAM, torch {torch.__version__}, {torch.get_num_threads()} threads, Python {platform.python_version()}")
 
 
 def today() -> str:
-    return subprocess.run(["date", "+%Y-%m-%d %H:%M %Z"], capture_output=True, text=True).stdout.strip()
+    return date_text("%Y-%m-%d %H:%M %Z")
 
 
 # ---- parity ---------------------------------------------------------------------------------------
@@ -201,7 +159,7 @@ def parity_child(variant: str, reference: str, frames: int) -> dict:
                     "ref_max_abs": float(scale.max()), "finite": bool(torch.isfinite(expected).all()),
                 }
     return {"variant": variant, "frames": frames, "hw": list(images.shape[-2:]), "rows": rows, "times_s": timings,
-            "build_s": build_s, "peak_rss_bytes": _peak_rss_bytes(), "load": os.getloadavg()[0]}
+            "build_s": build_s, "peak_rss_bytes": peak_rss_bytes(fallback=False), "load": os.getloadavg()[0]}
 
 
 def parity_section(results: list[dict], argv: str) -> list[str]:
@@ -272,10 +230,10 @@ def timing_child(variant: str, who: str, frames: int, reference: str | None) -> 
         kwargs = {"intrinsics": frame_intrinsics(frames)} if variant == "pi3x" else {}
         weight_bytes = frontend.weight_bytes()
         build_s = time.perf_counter() - start
-        reset = _reset_peak_rss()
-        start, cpu_start = time.perf_counter(), _cpu_seconds()
+        reset = reset_peak_rss()
+        start, cpu_start = time.perf_counter(), cpu_seconds()
         prediction = frontend.reconstruct(frame_list, 0, **kwargs)
-        seconds, cpu_s = time.perf_counter() - start, _cpu_seconds() - cpu_start
+        seconds, cpu_s = time.perf_counter() - start, cpu_seconds() - cpu_start
         from sl4slam.frontend.pi3 import estimate_peak_bytes
 
         h, w = prediction.depth.shape[1:]
@@ -291,16 +249,16 @@ def timing_child(variant: str, who: str, frames: int, reference: str | None) -> 
         images, _, _ = preprocess_images(images_u8)
         weight_bytes = sum(p.numel() * p.element_size() for p in model.parameters())
         build_s = time.perf_counter() - start
-        reset = _reset_peak_rss()
-        start, cpu_start = time.perf_counter(), _cpu_seconds()
+        reset = reset_peak_rss()
+        start, cpu_start = time.perf_counter(), cpu_seconds()
         with torch.no_grad():
             out = model(images[None])
-        seconds, cpu_s = time.perf_counter() - start, _cpu_seconds() - cpu_start
+        seconds, cpu_s = time.perf_counter() - start, cpu_seconds() - cpu_start
         h, w = images.shape[-2:]
         extra = {"finite": bool(torch.isfinite(out["local_points"]).all())}
     return {"variant": variant, "who": who, "frames": frames, "hw": [int(h), int(w)], "seconds": seconds,
             "cpu_s": cpu_s,
-            "build_s": build_s, "peak_rss_bytes": _peak_rss_bytes(), "peak_is_forward": reset,
+            "build_s": build_s, "peak_rss_bytes": peak_rss_bytes(fallback=False), "peak_is_forward": reset,
             "weight_bytes": weight_bytes, "threads": torch.get_num_threads(), "load": os.getloadavg()[0], **extra}
 
 
@@ -313,7 +271,7 @@ def run_child(args: list[str], cap_bytes: int, timeout: float) -> dict:
     def watch() -> None:
         start = time.time()
         while process.poll() is None:
-            rss = _rss_of(process.pid)
+            rss = rss_bytes(process.pid)
             state["peak"] = max(state["peak"], rss)
             if rss > cap_bytes:
                 state["killed"] = f"killed at {rss / GIB:.1f} GiB resident (cap {cap_bytes / GIB:.0f} GiB)"
@@ -374,11 +332,7 @@ def write_section(path: Path, tag: str, section: list[str]) -> None:
     header = ["# π³ / Pi3X benchmarks", "",
               "Our implementation (`sl4slam.models.pi3`) against the authors' (github.com/yyfz/Pi3), full size, "
               "random weights. Written by `benchmarks/bench_pi3.py`; each mode rewrites its own section.", ""]
-    text = path.read_text() if path.exists() else "\n".join(header) + "\n"
-    pattern = re.compile(rf"<!-- {tag} -->.*?<!-- /{tag} -->", re.S)
-    block = "\n".join(section)
-    text = pattern.sub(lambda _: block, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + block + "\n"
-    write_report(path, text.rstrip("\n").splitlines())
+    replace_section(path, f"<!-- {tag} -->", f"<!-- /{tag} -->", section, header)
 
 
 def argv_of_log(lines: list[str]) -> str:

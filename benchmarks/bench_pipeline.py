@@ -18,45 +18,12 @@ import platform
 import resource
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-from sl4slam.config import SLAMConfig
-from sl4slam.io import open_source
-from sl4slam.pipeline import SLAMPipeline
-from sl4slam.synthetic import write_synthetic_sequence
-from sl4slam.types import Frame
+from harness import LapSource, make_pipeline, result_file, simulated_config, synthetic_world, write_report
 
-from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
-
-HERE = Path(__file__).resolve().parent
 STAGES = ("retrieval", "points", "alignment", "loops", "backend", "store")
-
-
-class LapSource:
-    """The synthetic sequence repeated lap after lap (its path ends where it starts)."""
-
-    def __init__(self, base, laps: int) -> None:
-        self.base = base
-        self.laps = laps
-        self.name = f"{base.name} x{laps} laps"
-        self.skipped: list[str] = []
-
-    @property
-    def has_ground_truth(self) -> bool:
-        return self.base.has_ground_truth
-
-    def __len__(self) -> int:
-        return len(self.base) * self.laps
-
-    def get(self, index: int) -> Frame:
-        frame = self.base.get(index % len(self.base))
-        return Frame(index=index, timestamp=index / 30.0, rgb=frame.rgb, depth=frame.depth,
-                     T_world_cam=frame.T_world_cam, K=frame.K, path=frame.path)
-
-    def __iter__(self):
-        return (self.get(i) for i in range(len(self)))
 
 
 def main() -> None:
@@ -65,26 +32,19 @@ def main() -> None:
     parser.add_argument("--retrieval", default="orb")
     parser.add_argument("--perspective", type=float, default=0.1)
     parser.add_argument("--overlap", type=int, default=1, help="shared frames between submaps (the recorded figures: 1)")
-    parser.add_argument("--out", default=str(HERE / "results" / "pipeline.md"))
+    parser.add_argument("--out", default=str(result_file("pipeline")))
     args = parser.parse_args()
+    from sl4slam.io import open_source
 
-    world = HERE / "out" / "synthetic_518x294"
-    if not (world / "groundtruth.txt").is_file():
-        write_synthetic_sequence(world, num_frames=600, width=518, height=294, seed=0)
-    base = open_source(str(world))
-    # preload the lap so the benchmark does not time PNG decoding
-    cache = {i: base.get(i) for i in range(len(base))}
-    base.get = cache.__getitem__  # type: ignore[method-assign]
-
-    config = SLAMConfig(frontend="simulated")
-    config.retrieval.kind = args.retrieval
-    config.sim.perspective = args.perspective
-    config.sim.distort_first_submap = False
-    config.backend.graph = "submap"  # the graph the recorded figures were measured on
-    config.submap.overlap = args.overlap  # ... with one shared frame (the frames per forward set the cost)
-    config.overlap = False  # one submap after the other: each submap's stages timed on their own
-    source = LapSource(base, laps=10_000)
-    pipeline = SLAMPipeline(config)
+    config = simulated_config({
+        "retrieval.kind": args.retrieval, "sim.perspective": args.perspective, "sim.distort_first_submap": False,
+        "backend.graph": "submap",  # the graph the recorded figures were measured on
+        "submap.overlap": args.overlap,  # ... with one shared frame (the frames per forward set the cost)
+        "overlap": False,  # one submap after the other: each submap's stages timed on their own
+    })
+    # the lap preloaded, so the benchmark does not time PNG decoding
+    source = LapSource(open_source(str(synthetic_world(518, 294))), laps=10_000, preload=True)
+    pipeline = make_pipeline(config)
     keyframe_seconds: list[float] = []  # frames whose feed ran no submap: keyframe selection
     pipeline.start(source, progress=False)
     start = time.perf_counter()

@@ -12,7 +12,7 @@ SL(4) transform (perspective row entries 0.05-0.2, shear, scale), with Gaussian 
 
 Errors are against the true H: RMS transfer error over the clean points (``|H_est X_b -
 H_true X_b|``, in submap units) and the largest entry difference of the SL(4)-normalized
-matrices. Writes ``benchmarks/results/ransac.md``.
+matrices. Writes ``benchmarks/results/ransac.md`` (``--out`` for another file).
 
     python benchmarks/bench_ransac.py [--repeats 3] [--scenes 2]
 """
@@ -21,19 +21,19 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import os
 import platform
 import time
 from pathlib import Path
 
 import numpy as np
 
+from harness import load_average, result_file, table, write_report
 from sl4slam.alignment import estimate_sl4
 from sl4slam.config import AlignmentConfig
 from sl4slam.geometry import apply_transform
 from sl4slam.synthetic.correspondences import frame_correspondences, near_identity_sl4
 
-RESULTS = Path(__file__).resolve().parent / "results" / "ransac.md"
+RESULTS = result_file("ransac")
 HEIGHT, WIDTH = 294, 518
 
 
@@ -84,9 +84,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timed runs of each estimator per scene")
     parser.add_argument("--scenes", type=int, default=2, help="random scenes per outlier level")
     parser.add_argument("--outliers", type=float, nargs="+", default=[0.2, 0.4], help="clustered outlier fractions")
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     config = AlignmentConfig()
-    loads = [os.getloadavg()[0]]
+    loads = [load_average()]
     rows = []
     for fraction in args.outliers:
         t_ref, t_ours, e_ref, e_ours, m_ref, m_ours, ratios, sizes, drawn = [], [], [], [], [], [], [], [], []
@@ -132,7 +133,7 @@ def main() -> None:
             "drawn": int(np.median(drawn)),
         }
         rows.append(row)
-        loads.append(os.getloadavg()[0])
+        loads.append(load_average())
         print(row, flush=True)
 
     command = "python benchmarks/bench_ransac.py" + (
@@ -161,18 +162,14 @@ def main() -> None:
         "Errors against the true H: transfer RMS over the clean points (units) and the largest entry "
         "difference of the SL(4)-normalized matrices.",
         "",
-        "| outliers | points | runs | ours: hypotheses drawn | reference time (s) | ours time (s) | speed-up (median of per-run ratios) "
-        "| reference transfer RMS | ours transfer RMS | reference max entry err | ours max entry err |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        *table(["outliers", "points", "runs", "ours: hypotheses drawn", "reference time (s)", "ours time (s)",
+                "speed-up (median of per-run ratios)", "reference transfer RMS", "ours transfer RMS",
+                "reference max entry err", "ours max entry err"],
+               [[f"{row['fraction']:.0%}", row["points"], row["runs"], row["drawn"], f"{row['t_ref']:.3f}",
+                 f"{row['t_ours']:.3f}", f"{row['ratio']:.1f}x", f"{row['e_ref']:.2e}", f"{row['e_ours']:.2e}",
+                 f"{row['m_ref']:.2e}", f"{row['m_ours']:.2e}"] for row in rows]),
     ]
-    for row in rows:
-        lines.append(
-            f"| {row['fraction']:.0%} | {row['points']} | {row['runs']} | {row['drawn']} | {row['t_ref']:.3f} | {row['t_ours']:.3f} "
-            f"| {row['ratio']:.1f}x | {row['e_ref']:.2e} | {row['e_ours']:.2e} | {row['m_ref']:.2e} | {row['m_ours']:.2e} |"
-        )
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text("\n".join(lines) + "\n")
-    print(f"wrote {RESULTS.name}")
+    write_report(args.out, lines)
 
 
 if __name__ == "__main__":

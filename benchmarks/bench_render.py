@@ -8,7 +8,7 @@ Wall and CPU (process) time are both reported: on a shared machine the wall time
 other processes, the CPU time much less. Once, on the written folder, it also counts the
 keyframes the default ``KeyframeSelector`` picks (the pipeline's first stage).
 
-Writes ``benchmarks/results/render.md``.
+Writes ``benchmarks/results/render.md`` (``--out`` for another file).
 Usage: ``python benchmarks/bench_render.py [--repeats 3] [--frames 600] [--width 320] [--height 240]``.
 """
 
@@ -20,23 +20,25 @@ import os
 import platform
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from harness import result_file, table, timed, write_report
 from sl4slam.io import open_source
 from sl4slam.keyframes import KeyframeSelector
 from sl4slam.synthetic import camera_path, default_intrinsics, make_world, render_frames, write_synthetic_sequence
 
-RESULTS = Path(__file__).resolve().parent / "results" / "render.md"
+RESULTS = result_file("render")
 
 
-def timed(function, *args, **kwargs):
-    wall, cpu = time.perf_counter(), time.process_time()
-    result = function(*args, **kwargs)
-    return result, time.perf_counter() - wall, time.process_time() - cpu
+def step_row(name: str, samples: list[tuple[float, float]], frames: int) -> list[str]:
+    """A step's row: median wall and CPU seconds, and per frame for the steps that render frames."""
+    wall = statistics.median(s[0] for s in samples)
+    cpu = statistics.median(s[1] for s in samples)
+    per_frame = [f"{1000 * wall / frames:.1f}", f"{1000 * cpu / frames:.1f}"] if name != "make_world" else ["-", "-"]
+    return [f"`{name}`", f"{wall:.1f}", f"{cpu:.1f}", *per_frame]
 
 
 def main() -> None:
@@ -46,6 +48,7 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
 
     K = default_intrinsics(args.width, args.height)
@@ -84,17 +87,9 @@ def main() -> None:
         "`write_synthetic_sequence` is the whole CLI job (world, rendering, 16-bit depth and RGB PNGs, text files, "
         "contact sheet). Target: under 60 s for the whole job on 2 cores.",
         "",
-        "| step | wall (s) | CPU (s) | wall per frame (ms) | CPU per frame (ms) |",
-        "|---|---|---|---|---|",
+        *table(["step", "wall (s)", "CPU (s)", "wall per frame (ms)", "CPU per frame (ms)"],
+               [step_row(name, samples, args.frames) for name, samples in rows.items()]),
     ]
-    for name, samples in rows.items():
-        wall = statistics.median(s[0] for s in samples)
-        cpu = statistics.median(s[1] for s in samples)
-        per_frame = name != "make_world"
-        lines.append(
-            f"| `{name}` | {wall:.1f} | {cpu:.1f} | "
-            + (f"{1000 * wall / args.frames:.1f} | {1000 * cpu / args.frames:.1f} |" if per_frame else "- | - |")
-        )
     write_wall = statistics.median(s[0] for s in rows["write_synthetic_sequence"])
     write_cpu = statistics.median(s[1] for s in rows["write_synthetic_sequence"])
     lines += [
@@ -108,9 +103,7 @@ def main() -> None:
         f"with {metadata['num_boxes']} furniture boxes.",
         "",
     ]
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_report(args.out, lines)
 
 
 if __name__ == "__main__":

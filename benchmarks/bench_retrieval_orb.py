@@ -7,30 +7,30 @@ Measures, in one process:
   databases of 100 and 1000 stored keyframes (the revisited TUM frames plus seeded random
   textures as distractors), and whether the true revisit is still found.
 
-Writes ``benchmarks/results/retrieval_orb.md``. Run from the repository root:
+Writes ``benchmarks/results/retrieval_orb.md`` (``--out`` for another file). Run from the repository root:
 
     python benchmarks/bench_retrieval_orb.py
 """
 
 from __future__ import annotations
 
+import argparse
 import os
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 
+from harness import median_seconds, result_file, shared_sequence, table, write_report
 from sl4slam.config import KeyframeConfig, RetrievalConfig
+from sl4slam.io.memory import frames_from_images as as_frames
 from sl4slam.keyframes import KeyframeSelector
 from sl4slam.retrieval.orb import OrbRetrieval
-from sl4slam.io.memory import frames_from_images as as_frames
 
-REPO = Path(__file__).resolve().parents[1]
-TUM = REPO.parent / "shared" / "data" / "tum_rgbd_fr1_xyz_first37"
-RESULT = REPO / "benchmarks" / "results" / "retrieval_orb.md"
+TUM = shared_sequence("xyz37")
+RESULT = result_file("retrieval_orb")
 REPEATS = 5
 BATCH = 16
 
@@ -47,15 +47,6 @@ def distractor(seed: int) -> np.ndarray:
     coarse = cv2.resize(rng.integers(0, 256, (60, 80, 3), dtype=np.uint8), (640, 480), interpolation=cv2.INTER_CUBIC)
     fine = cv2.GaussianBlur(rng.integers(0, 256, (480, 640, 3), dtype=np.uint8), (0, 0), 1.2)
     return cv2.addWeighted(coarse, 0.6, fine, 0.4, 0)
-
-
-def median_seconds(function, repeats: int = REPEATS) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def bench_keyframes(frames: list[np.ndarray]) -> dict:
@@ -101,11 +92,11 @@ def bench_retrieval(frames: list[np.ndarray], database_sizes: tuple[int, ...]) -
         query_submap = submap_id + config.tau_interval + 1  # the whole database is eligible
 
         def one_query() -> None:
-            retrieval._pending.clear()  # measure extraction too, as in the pipeline
+            retrieval.forget_query_features()  # measure extraction too, as in the pipeline
             retrieval.query(as_frames(query_frames[:1], query_images[:1]), query_submap, max_results=1)
 
         def batch_query() -> list:
-            retrieval._pending.clear()
+            retrieval.forget_query_features()
             return retrieval.query(as_frames(query_frames, query_images), query_submap, max_results=len(query_frames))
 
         def ranking_only() -> None:
@@ -117,9 +108,9 @@ def bench_retrieval(frames: list[np.ndarray], database_sizes: tuple[int, ...]) -
         rows.append(
             {
                 "size": len(retrieval),
-                "one_ms": 1e3 * median_seconds(one_query),
-                "batch_ms": 1e3 * median_seconds(batch_query, repeats=3),
-                "ranking_ms": 1e3 * median_seconds(ranking_only),
+                "one_ms": 1e3 * median_seconds(one_query, REPEATS),
+                "batch_ms": 1e3 * median_seconds(batch_query, 3),
+                "ranking_ms": 1e3 * median_seconds(ranking_only, REPEATS),
                 "found": len(found),
                 "correct": correct,
             }
@@ -128,6 +119,9 @@ def bench_retrieval(frames: list[np.ndarray], database_sizes: tuple[int, ...]) -
 
 
 def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default=str(RESULT))
+    args = parser.parse_args()
     if not TUM.is_dir():
         print(f"TUM excerpt not found next to the repository ({TUM.name}); nothing to benchmark")
         return 1
@@ -135,7 +129,7 @@ def main() -> int:
     frames = load_tum()
     keyframes = bench_keyframes(frames)
     extractor = OrbRetrieval(RetrievalConfig())
-    extract_ms = 1e3 * median_seconds(lambda: extractor.extract(frames[0]), repeats=15)
+    extract_ms = 1e3 * median_seconds(lambda: extractor.extract(frames[0]), 15)
     rows = bench_retrieval(frames, (100, 1000))
 
     lines = [
@@ -149,10 +143,9 @@ def main() -> int:
         "",
         "### Keyframe selector, 640x480 (TUM fr1_xyz excerpt, tau_disparity 25 px)",
         "",
-        "| frames | keyframes | per frame (all) | non-keyframe frame | keyframe frame |",
-        "|---|---|---|---|---|",
-        f"| {keyframes['frames']} | {keyframes['keyframes']} | {keyframes['all_ms']:.1f} ms | "
-        f"{keyframes['other_ms']:.1f} ms | {keyframes['keyframe_ms']:.1f} ms |",
+        *table(["frames", "keyframes", "per frame (all)", "non-keyframe frame", "keyframe frame"],
+               [[keyframes["frames"], keyframes["keyframes"], f"{keyframes['all_ms']:.1f} ms",
+                 f"{keyframes['other_ms']:.1f} ms", f"{keyframes['keyframe_ms']:.1f} ms"]]),
         "",
         "A non-keyframe costs one grey conversion and one pyramidal Lucas-Kanade call; a keyframe adds the",
         "Shi-Tomasi detection on it (corners are computed once per keyframe).",
@@ -164,15 +157,11 @@ def main() -> int:
         f"Database: TUM frames 0, 12, 24, 36 plus seeded random-texture distractors. Queries: {BATCH} other TUM frames",
         "(each should match a stored TUM frame). Query times include feature extraction.",
         "",
-        "| stored keyframes | 1 query keyframe | batch of 16 (median of 3) | ranking of 16 (bag of words) "
-        "| query keyframes matched / correct (at most 5 pairs verified per batch) |",
-        "|---|---|---|---|---|",
+        *table(["stored keyframes", "1 query keyframe", "batch of 16 (median of 3)", "ranking of 16 (bag of words)",
+                "query keyframes matched / correct (at most 5 pairs verified per batch)"],
+               [[row["size"], f"{row['one_ms']:.1f} ms", f"{row['batch_ms']:.0f} ms", f"{row['ranking_ms']:.1f} ms",
+                 f"{row['found']}/{BATCH} / {row['correct']}"] for row in rows]),
     ]
-    for row in rows:
-        lines.append(
-            f"| {row['size']} | {row['one_ms']:.1f} ms | {row['batch_ms']:.0f} ms | {row['ranking_ms']:.1f} ms | "
-            f"{row['found']}/{BATCH} / {row['correct']} |"
-        )
     small, large = rows[0], rows[-1]
     lines += [
         "",
@@ -184,9 +173,7 @@ def main() -> int:
         "inverted file and grows sublinearly here (its cost follows the words a query shares with the database).",
         "",
     ]
-    RESULT.parent.mkdir(parents=True, exist_ok=True)
-    RESULT.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_report(args.out, lines)
     return 0
 
 

@@ -20,36 +20,17 @@ import os
 import platform
 import statistics
 import sys
-import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from harness import interleaved_times, result_file, write_report
 from sl4slam.models.salad import SaladModel, preprocess_images
 from sl4slam.retrieval.salad import DescriptorIndex
 
 DIM = 8448
 NUM_QUERIES = 16
 FRAMES_PER_SUBMAP = 16
-
-
-def interleaved_times(cases: dict, repeats: int) -> dict:
-    """Run every case (a name -> zero-argument callable) once per round, after one warm-up
-    round, and collect the seconds of each run per case.
-
-    Interleaving spreads load from other processes evenly over the cases, so their ratios
-    stay meaningful on a shared machine.
-    """
-    for fn in cases.values():
-        fn()
-    times = {name: [] for name in cases}
-    for _ in range(repeats):
-        for name, fn in cases.items():
-            start = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - start)
-    return times
 
 
 def unit_rows(count: int, seed: int) -> np.ndarray:
@@ -157,7 +138,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="torch thread counts to measure")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--batch", type=int, default=4, help="images per forward pass in the throughput test")
-    parser.add_argument("--out", default="benchmarks/results/salad.md")
+    parser.add_argument("--out", default=str(result_file("salad")))
     args = parser.parse_args()
     load_before = os.getloadavg()[0]
     query_lines = [
@@ -214,10 +195,7 @@ def main() -> None:
             "",
         ]
     )
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    print(f"wrote {out}")
+    write_report(args.out, text.splitlines())
 
 
 if __name__ == "__main__":

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from harness import result_file, run_sequence, simulated_config, synthetic_world, write_report
 from sl4slam.config import UpgradeConfig
 from sl4slam.geometry import apply_transform, decompose_projection, normalize_sl4, se3_inverse, umeyama_sim3
 from sl4slam.io import read_tum_trajectory
@@ -41,8 +42,7 @@ from sl4slam.synthetic.correspondences import near_identity_sl4
 from sl4slam.synthetic.world import camera_path
 from sl4slam.upgrade import estimate_metric_upgrade
 
-HERE = Path(__file__).resolve().parent
-RESULTS = HERE / "results" / "upgrade.md"
+RESULTS = result_file("upgrade")
 FOCAL, WIDTH, HEIGHT = 500.0, 640, 480
 PP = np.array([(WIDTH - 1) / 2.0, (HEIGHT - 1) / 2.0])
 SUBMAP = 16
@@ -310,15 +310,10 @@ def bench_conditioning(seeds: int, tum: Path | None) -> list[str]:
 
 def bench_pipeline(tum: Path | None) -> list[str]:
     """Whole runs with the simulated frontend: keyframe ATE without / with the upgrade."""
-    from sl4slam.io import open_source
     from sl4slam.metrics import ate
-    from sl4slam.pipeline import SLAMPipeline, world_cameras
-    from sl4slam.config import SLAMConfig
-    from sl4slam.synthetic import write_synthetic_sequence
+    from sl4slam.pipeline import world_cameras
 
-    world = HERE / "out" / "synthetic_320x240"
-    if not (world / "groundtruth.txt").is_file():
-        write_synthetic_sequence(world, num_frames=600, width=320, height=240, seed=0)
+    world = synthetic_world(320, 240)
     cases = [("synthetic world", world, np.array([159.5, 119.5]), "none"), ("synthetic world", world, np.array([159.5, 119.5]), "orb")]
     if tum is not None:
         cases.append(("TUM fr1/desk", tum, np.array([318.6, 255.3]), "none"))
@@ -326,13 +321,10 @@ def bench_pipeline(tum: Path | None) -> list[str]:
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, path, pp, retrieval in cases:
         for distort_first in (True, False):
-            config = SLAMConfig(frontend="simulated")
-            config.sim.perspective = 0.1
-            config.sim.distort_first_submap = distort_first
-            config.backend.graph = "submap"  # the graph the recorded figures were measured on
-            config.retrieval.kind = retrieval
-            pipeline = SLAMPipeline(config)
-            result = pipeline.run(open_source(str(path)), progress=False)
+            config = simulated_config({"sim.perspective": 0.1, "sim.distort_first_submap": distort_first,
+                                       "backend.graph": "submap",  # the graph the recorded figures were measured on
+                                       "retrieval.kind": retrieval})
+            result = run_sequence(config, path).result
             P = world_cameras(result.keyframes, result.H_world_submap)
             upgrade = estimate_metric_upgrade(P, pp, config.upgrade)
             _, T_after, _ = decompose_projection(upgrade_cameras(P, upgrade.H_metric_world))
@@ -425,11 +417,7 @@ def main() -> None:
             "",
             *pipeline,
         ]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text("\n".join(text) + "\n")
-    os.replace(tmp, args.out)
-    print(f"wrote {args.out}")
+    write_report(args.out, text)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import multiprocessing
 import os
 import platform
 import time
@@ -25,59 +24,51 @@ from pathlib import Path
 
 import numpy as np
 
-from sl4slam.config import SLAMConfig, apply_sim_profile
-from sl4slam.io import open_source
-from sl4slam.result.outputs import compute_ate
-from sl4slam.pipeline import SLAMPipeline
-from sl4slam.synthetic import write_synthetic_sequence
+from harness import (Failure, add_parallel_arguments, attempt, parallel_options, result_ate, result_file, run_all,
+                     run_sequence, shared_sequence, simulated_config, synthetic_world, table, with_settings,
+                     write_report)
 
-from _report import write_report  # benchmarks/ is on sys.path: the scripts run from there
-
-HERE = Path(__file__).resolve().parent
 # world size: keyframe threshold (the demo's 25 px at 320x240; the same keyframes at half the size)
 WORLD_SIZES = {"160x120": 12.5, "320x240": 25.0}
 # name: (graph group, graph design, label)
 GRAPHS = {"sl4": ("sl4", "keyframe", "SL(4) keyframe"), "sl4-submap": ("sl4", "submap", "SL(4) submap"),
           "sim3": ("sim3", "submap", "Sim(3)")}
-DESK = HERE.parent.parent / "shared" / "data" / "tum_rgbd_fr1_desk"
 SETTINGS = ("perspective 0", "perspective 0.05", "perspective 0.1", "perspective 0.2", "vggt profile")
 
 
-def world_path(size: str) -> Path:
-    return HERE / "out" / f"synthetic_{size}"
+def world_path(sequence: str) -> Path:
+    """``"desk"`` or a synthetic world size (``"320x240"``) -> its folder."""
+    if sequence == "desk":
+        return shared_sequence("desk")
+    width, height = map(int, sequence.split("x"))
+    return synthetic_world(width, height)
 
 
-def run(world: Path, setting: str, graph: str, seed: int) -> dict:
-    config = SLAMConfig(frontend="simulated")
-    if setting == "vggt profile":
-        apply_sim_profile(config.sim, "vggt")
-    else:
-        config.sim.perspective = float(setting.split()[1])
-    config.sim.seed = config.alignment.seed = seed
-    config.backend.kind, config.backend.graph, _ = GRAPHS[graph]
-    config.upgrade.mode = "on"  # measured on every graph ("auto" leaves it to the submap graph)
-    config.retrieval.kind = "orb"
-    if world.name.startswith("synthetic_"):
-        config.keyframes.tau_disparity = WORLD_SIZES[world.name.removeprefix("synthetic_")]
-    start = time.perf_counter()
-    pipeline = SLAMPipeline(config)
-    try:
-        upgraded = pipeline.run(open_source(str(world)), progress=False)
-    except Exception as exc:  # a run that aborts is a finding, not a crash of the benchmark
-        return {"error": f"{type(exc).__name__}: {exc}"}
-    completed = sum("completed from" in (e.fallback or "") for e in upgraded.edges)
+def run(sequence: str, setting: str, graph: str, seed: int) -> dict:
+    """One run measured twice: the ATE as written (upgraded) and without the upgrade."""
+    kind, design, _ = GRAPHS[graph]
+    simulator = {"sim.profile": "vggt"} if setting == "vggt profile" else {"sim.perspective": float(setting.split()[1])}
+    keyframes = {"keyframes.tau_disparity": WORLD_SIZES[sequence]} if sequence in WORLD_SIZES else {}
+    config = simulated_config({**simulator, "sim.seed": seed, "alignment.seed": seed, "backend.kind": kind,
+                               "backend.graph": design,
+                               "upgrade.mode": "on",  # measured on every graph ("auto" leaves it to the submap graph)
+                               "retrieval.kind": "orb",
+                               **keyframes})
+    world = world_path(sequence)
+    upgraded = attempt(config, world)
+    if isinstance(upgraded, Failure):  # a run that aborts is a finding, not a crash of the benchmark
+        return {"error": str(upgraded)}
+    completed = sum("completed from" in (e.fallback or "") for e in upgraded.result.edges)
     if completed:
         # the upgrade also completed planar links, which changed the graph: "without" is a run without both
-        config.upgrade.mode = "off"
-        off = SLAMPipeline(config)
-        plain = off.run(open_source(str(world)), progress=False)
+        plain = run_sequence(with_settings(config, {"upgrade.mode": "off"}), world).result
     else:
-        plain = pipeline.result_for(pipeline.backend.world_estimate(final=True))  # the same polished graph, not upgraded
-    applied = [u for u in upgraded.stats["metric_upgrade"] if u["applied"]]
-    outcome = {"with": compute_ate(upgraded).rmse, "without": compute_ate(plain).rmse, "completed": completed,
-               "applied": len(applied), "segments": len(upgraded.stats["metric_upgrade"]),
-               "reasons": sorted({u["reason"] for u in upgraded.stats["metric_upgrade"]}),
-               "seconds": time.perf_counter() - start}
+        pipeline = upgraded.pipeline  # the same polished graph, not upgraded
+        plain = pipeline.result_for(pipeline.backend.world_estimate(final=True))
+    metric = upgraded.stats["metric_upgrade"]
+    outcome = {"with": upgraded.ate(), "without": result_ate(plain).rmse, "completed": completed,
+               "applied": sum(u["applied"] for u in metric), "segments": len(metric),
+               "reasons": sorted({u["reason"] for u in metric}), "seconds": upgraded.seconds}
     print(f"{world.name} {setting} {graph} seed {seed}: {outcome}", flush=True)
     return outcome
 
@@ -85,24 +76,22 @@ def run(world: Path, setting: str, graph: str, seed: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, default=3)
-    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one process each)")
+    add_parallel_arguments(parser, "--jobs", 2)
     parser.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=SETTINGS, help="simulator settings to run")
     parser.add_argument("--graphs", nargs="+", default=list(GRAPHS), choices=list(GRAPHS))
     parser.add_argument("--world-size", default="320x240", choices=list(WORLD_SIZES), help="synthetic world")
     parser.add_argument("--sequences", nargs="+", default=["synthetic", "desk"], choices=["synthetic", "desk"])
-    parser.add_argument("--out", default=str(HERE / "results" / "upgrade_pipeline.md"))
+    parser.add_argument("--out", default=str(result_file("upgrade_pipeline")))
     args = parser.parse_args()
-    world = world_path(args.world_size)
-    if not (world / "groundtruth.txt").is_file():
-        width, height = map(int, args.world_size.split("x"))
-        write_synthetic_sequence(world, num_frames=600, width=width, height=height, seed=0)
-    worlds = ([("synthetic", world)] if "synthetic" in args.sequences else []) + (
-        [("TUM fr1/desk", DESK)] if DESK.is_dir() and "desk" in args.sequences else [])
-    cases = [(name, path, setting, graph) for name, path in worlds for setting in args.settings for graph in args.graphs]
+    world_path(args.world_size)  # rendered once, before the workers start
+    worlds = ([("synthetic", args.world_size)] if "synthetic" in args.sequences else []) + (
+        [("TUM fr1/desk", "desk")] if shared_sequence("desk").is_dir() and "desk" in args.sequences else [])
+    cases = [(name, sequence, setting, graph) for name, sequence in worlds for setting in args.settings
+             for graph in args.graphs]
     jobs = [(case, seed) for case in cases for seed in range(args.seeds)]
     start, load_start = time.perf_counter(), os.getloadavg()[0]
-    with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
-        outcomes = pool.starmap(run, [(path, setting, backend, seed) for (_, path, setting, backend), seed in jobs])
+    outcomes = run_all(run, [(sequence, setting, backend, seed) for (_, sequence, setting, backend), seed in jobs],
+                       **parallel_options(args))
     runs: dict[tuple, list] = {}
     for (case, _), outcome in zip(jobs, outcomes):
         runs.setdefault(case, []).append(outcome)
@@ -118,10 +107,11 @@ def main() -> None:
         total = sum(r["segments"] for r in ok)
         reasons = sorted({reason for r in ok for reason in r["reasons"]})
         completed = sum(r.get("completed", 0) for r in ok)
-        rows.append(f"| {name} | {setting} | {GRAPHS[graph][2]} | {np.median(without):.4f} "
-                    f"({without.min():.4f}-{without.max():.4f}) | {np.median(with_):.4f} ({with_.min():.4f}-{with_.max():.4f}) | "
-                    f"{np.median(ratios):.3f} ({ratios.min():.3f}-{ratios.max():.3f}) | {applied}/{total} | {completed} | "
-                    f"{len(found) - len(ok)} | {'; '.join(reasons)[:160]} |")
+        rows.append([name, setting, GRAPHS[graph][2],
+                     f"{np.median(without):.4f} ({without.min():.4f}-{without.max():.4f})",
+                     f"{np.median(with_):.4f} ({with_.min():.4f}-{with_.max():.4f})",
+                     f"{np.median(ratios):.3f} ({ratios.min():.3f}-{ratios.max():.3f})", f"{applied}/{total}", completed,
+                     len(found) - len(ok), "; ".join(reasons)[:160]])
         if setting == "perspective 0.1" and graph != "sim3":
             target.append(f"{name}, {GRAPHS[graph][2]}: median {np.median(ratios):.3f}")
     text = [
@@ -138,10 +128,8 @@ def main() -> None:
         "links (`--upgrade-complete-links`), which changes the graph itself, *without* is a second run with "
         f"`--metric-upgrade off`. Median and range over {args.seeds} seeds.",
         "",
-        "| sequence | simulator | graph | ATE without | ATE with | with / without | upgrades applied | links completed | "
-        "aborted | outcomes |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-        *rows,
+        *table(["sequence", "simulator", "graph", "ATE without", "ATE with", "with / without", "upgrades applied",
+                "links completed", "aborted", "outcomes"], rows),
         "",
         f"Targets: with / without <= 0.2 at perspective 0.1 on an SL(4) graph ({'; '.join(target)}); no case worse than "
         f"1.05x (worst single run: {worst:.3f}).",

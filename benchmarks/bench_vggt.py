@@ -32,7 +32,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -40,39 +39,13 @@ import tempfile
 import time
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results" / "vggt.md"
+from harness import peak_rss_bytes, replace_heading, reset_peak_rss, result_file, rss_bytes
+
+RESULTS = result_file("vggt")
 HEIGHT, WIDTH = 294, 518
 ANCHOR_H100 = {1: (0.04, 1.88), 8: (0.11, 3.23), 20: (0.31, 5.58), 50: (1.04, 11.41), 100: (3.12, 21.15)}  # frames: (s, GB), aggregator only
 DATE = "2026-11-23"
 HEAD_CHUNK = 8  # the dense heads' default chunk (frames decoded at once)
-
-
-def _rss_bytes() -> int:
-    with open("/proc/self/statm") as handle:
-        return int(handle.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-
-
-def _peak_rss_bytes() -> int:
-    """Peak resident size since the start, or since the last :func:`_reset_peak_rss`."""
-    try:
-        with open("/proc/self/status") as handle:
-            for line in handle:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-
-def _reset_peak_rss() -> bool:
-    """Restart the peak resident size from the current one (Linux ``clear_refs``), so that the
-    forward's peak is not the model construction's."""
-    try:
-        with open("/proc/self/clear_refs", "w") as handle:
-            handle.write("5")
-        return True
-    except OSError:
-        return False
 
 
 def _random_model(seed: int, heads: tuple[str, ...] = ("camera", "depth")):
@@ -106,7 +79,7 @@ def run_point(frames: int, device: str, repeats: int, warmup: int, seed: int, mo
         b.numel() * b.element_size() for b in model.buffers())
     if precision.mode == "int8":  # packed int8 weights are not parameters
         weight_bytes = estimate_weights(model.config, precision)
-    rss_after_weights = _rss_bytes()
+    rss_after_weights = rss_bytes()
     generator = torch.Generator().manual_seed(seed)
     images = torch.rand(frames, 3, height, width, generator=generator).to(dev)
     autocast = precision.autocast
@@ -118,8 +91,8 @@ def run_point(frames: int, device: str, repeats: int, warmup: int, seed: int, mo
             torch.cuda.synchronize()
         return out
 
-    build_peak = _peak_rss_bytes()
-    reset = _reset_peak_rss()
+    build_peak = peak_rss_bytes()
+    reset = reset_peak_rss()
     for _ in range(warmup):
         forward()
     times = []
@@ -139,7 +112,7 @@ def run_point(frames: int, device: str, repeats: int, warmup: int, seed: int, mo
         "mode": precision.mode,
         "times_s": times,
         "median_s": statistics.median(times),
-        "peak_rss_bytes": _peak_rss_bytes(),
+        "peak_rss_bytes": peak_rss_bytes(),
         "peak_rss_is_forward": reset,
         "build_peak_rss_bytes": build_peak,
         "head_chunk": HEAD_CHUNK,
@@ -219,9 +192,9 @@ def load_check(seed: int) -> dict:
         subprocess.run(
             [sys.executable, __file__, "--write-checkpoint", str(path), "--seed", str(seed)], check=True
         )
-        baseline = _rss_bytes()
+        baseline = rss_bytes()
         model = load_vggt(str(path))
-        loaded = _rss_bytes()
+        loaded = rss_bytes()
         # Read every weight once, so pages of a memory-mapped file count in the resident size.
         checksum = sum(float(p.double().sum()) for p in model.parameters())
         weight_bytes = sum(p.numel() * p.element_size() for p in model.parameters())
@@ -230,9 +203,9 @@ def load_check(seed: int) -> dict:
             "weight_bytes": weight_bytes,
             "rss_before_bytes": baseline,
             "rss_after_load_bytes": loaded,
-            "rss_after_bytes": _rss_bytes(),
+            "rss_after_bytes": rss_bytes(),
             "checksum": checksum,
-            "peak_rss_bytes": _peak_rss_bytes(),
+            "peak_rss_bytes": peak_rss_bytes(),
         }
 
 
@@ -264,11 +237,12 @@ def frontend_submaps(frames: int, submaps: int, seed: int) -> dict:
     import numpy as np
     import torch
 
-    from sl4slam.config import VGGTConfig
+    from sl4slam.config import ModelConfig
     from sl4slam.frontend.vggt import VGGTFrontend
     from sl4slam.types import Frame
 
-    frontend = VGGTFrontend(VGGTConfig(device="auto"), model=_random_model(seed))
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    frontend = VGGTFrontend(ModelConfig(dtype="fp32"), model=_random_model(seed), device=device)
     rng = np.random.default_rng(seed)
     times = []
     for submap in range(submaps + 1):  # the first is a warm-up
@@ -280,7 +254,7 @@ def frontend_submaps(frames: int, submaps: int, seed: int) -> dict:
         prediction = frontend.reconstruct(batch, submap_id=submap)
         times.append(time.perf_counter() - start)
         assert np.isfinite(prediction.depth).all()
-    peak = torch.cuda.max_memory_allocated() if frontend.device.type == "cuda" else _peak_rss_bytes()
+    peak = torch.cuda.max_memory_allocated() if frontend.device.type == "cuda" else peak_rss_bytes()
     return {"frames": frames, "grid": list(prediction.depth.shape[1:]), "times_s": times[1:],
             "median_s": statistics.median(times[1:]), "peak_bytes": peak, "mode": frontend.precision.mode,
             "device": frontend.device.type}
@@ -365,17 +339,7 @@ def main() -> None:
 
 def write_section(path: Path, header: str, lines: list[str]) -> None:
     """Replace (or append) the section ``header`` of the results file ``path``."""
-    section = "\n".join([header, "", *lines]) + "\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    existing = path.read_text() if path.is_file() else "# VGGT benchmarks\n"
-    if header in existing:  # replace this section, keep the others
-        before, _, rest = existing.partition(header)
-        after = rest[rest.find("\n## ") + 1:] if "\n## " in rest else ""
-        existing = before.rstrip() + "\n\n" + after
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(existing.rstrip() + "\n\n" + section)
-    os.replace(tmp, path)
-    print(section)
+    replace_heading(path, header, lines, ["# VGGT benchmarks"])
 
 
 def write_compare_report(path: Path, rows: list[dict], argv: str) -> None:

@@ -43,14 +43,15 @@ import time
 from pathlib import Path
 
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "tests"))
+from harness import REPO, cpu_model, peak_rss_bytes, result_file, synthetic_world, table, write_report
+
+sys.path.insert(0, str(REPO / "tests"))
 
 from browser import chromium_path, drawn_fraction, interrupt, launch  # noqa: E402
 from result_folders import write_known_result  # noqa: E402
 
-RESULTS = HERE / "results" / "viewer.md"
-OPEN_RESULTS = HERE / "results" / "viewer_open.md"
+RESULTS = result_file("viewer")
+OPEN_RESULTS = result_file("viewer_open")
 
 
 def free_port() -> int:
@@ -60,10 +61,9 @@ def free_port() -> int:
 
 
 def peak_rss_mib(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+    """Peak resident memory of process ``pid`` in MiB (NaN where it cannot be read)."""
+    peak = peak_rss_bytes(pid, fallback=False)
+    return peak / 2**20 if peak else float("nan")
 
 
 def wait_for_port(proc: subprocess.Popen, port: int, start: float, bound_s: float = 600.0) -> float:
@@ -185,25 +185,20 @@ def main() -> None:
         "started -> the browser's 3D canvas shows the map; *drawn*: the fraction of the canvas it covers then. "
         "*Memory*: peak resident memory of the viewer process.",
         "",
-        "| point budget | points sent | port open (s) | ready (s) | first frame (s) | drawn | viewer memory (MiB) |",
-        "|---|---|---|---|---|---|---|",
+        *table(["point budget", "points sent", "port open (s)", "ready (s)", "first frame (s)", "drawn",
+                "viewer memory (MiB)"],
+               [[f"{budget:,}" if budget <= points else f"{budget:,} (all points)", f"{min(budget, points):,}",
+                 f"{statistics.median(v[4] for v in values):.2f}", f"{statistics.median(v[0] for v in values):.1f}",
+                 f"{statistics.median(v[1] for v in values):.1f}", f"{statistics.median(v[2] for v in values):.2f}",
+                 f"{statistics.median(v[3] for v in values):.0f}"] for budget, values in rows.items()]),
     ]
-    for budget, values in rows.items():
-        sent = min(budget, points)
-        label = f"{budget:,}" if budget <= points else f"{budget:,} (all points)"
-        lines.append(f"| {label} | {sent:,} | {statistics.median(v[4] for v in values):.2f} | "
-                     f"{statistics.median(v[0] for v in values):.1f} | "
-                     f"{statistics.median(v[1] for v in values):.1f} | {statistics.median(v[2] for v in values):.2f} | "
-                     f"{statistics.median(v[3] for v in values):.0f} |")
-    args.results.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_report(args.results, lines)
 
 
 def simulated_run(scratch: Path, frames: int = 200) -> Path:
-    """A result folder written by ``sl4slam run --frontend simulated`` on a synthetic sequence."""
-    world, out = scratch / "world", scratch / "simulated_run"
-    subprocess.run([sys.executable, "-m", "sl4slam.cli", "synth", "--out", str(world), "--frames", str(frames),
-                    "--width", "640", "--height", "480"], check=True, stdout=subprocess.DEVNULL)
+    """A result folder written by ``sl4slam run --frontend simulated`` on the synthetic world of
+    ``frames`` frames at 640x480 (what ``sl4slam synth --frames N --width 640 --height 480`` writes)."""
+    world, out = synthetic_world(640, 480, frames), scratch / "simulated_run"
     subprocess.run([sys.executable, "-m", "sl4slam.cli", "run", str(world), "--out", str(out),
                     "--frontend", "simulated", "--quiet"], check=True, stdout=subprocess.DEVNULL)
     return out
@@ -212,10 +207,10 @@ def simulated_run(scratch: Path, frames: int = 200) -> Path:
 def map_size(folder: Path, budget: int) -> tuple[int, int, int, int]:
     """(keyframes, submaps, confident points, points shown) of a result folder."""
     from sl4slam.result.reading import load_result
-    from sl4slam.viewer.result import _mask_count, expected_totals, submap_groups
+    from sl4slam.viewer.result import expected_totals, mask_count, submap_groups
 
     records = load_result(folder).keyframes
-    masks = [_mask_count(r.path) for r in records]
+    masks = [mask_count(r.path) for r in records]
     totals = expected_totals(records, masks, min(1.0, budget / max(1, sum(n for n, _ in masks))))
     return len(records), len(submap_groups(records)), totals.full, totals.shown
 
@@ -246,9 +241,8 @@ def open_only(args) -> None:
                     times[name].append(open_run(folder, budget, env, name))
             keyframes, submaps, confident, shown = map_size(folder, budget)
             for name, values in times.items():
-                rows.append(f"| {label} | {keyframes} / {submaps} | {confident:,} | {shown:,} | {name} | "
-                            f"{statistics.median(v[0] for v in values):.2f} | "
-                            f"{statistics.median(v[1] for v in values):.1f} |")
+                rows.append([label, f"{keyframes} / {submaps}", f"{confident:,}", f"{shown:,}", name,
+                             f"{statistics.median(v[0] for v in values):.2f}", f"{statistics.median(v[1] for v in values):.1f}"])
     load = os.getloadavg()[0]
     command = ("python benchmarks/bench_viewer.py --open-only"
                + (f" --result {args.result}" if args.result is not None else f" --keyframes {args.keyframes}")
@@ -268,24 +262,10 @@ def open_only(args) -> None:
         + ". *Port open*: `sl4slam view` started -> its port accepts a TCP connection (Python's start and imports "
         "included). *Ready*: started -> its \"loaded\" line (map read, decimated, point spacing measured, scene sent).",
         "",
-        "| map | keyframes / submaps | confident points | points shown | viewer | port open (s) | ready (s) |",
-        "|---|---|---|---|---|---|---|",
-        *rows,
+        *table(["map", "keyframes / submaps", "confident points", "points shown", "viewer", "port open (s)",
+                "ready (s)"], rows),
     ]
-    results.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-
-
-def cpu_model() -> str:
-    """The CPU's model name (``lscpu``)."""
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-    except (OSError, subprocess.CalledProcessError):
-        return platform.processor() or "unknown"
-    for line in out.splitlines():
-        if line.startswith("Model name:"):
-            return line.split(":", 1)[1].strip()
-    return "unknown"
+    write_report(results, lines)
 
 
 if __name__ == "__main__":

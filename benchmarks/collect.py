@@ -5,9 +5,7 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
-HERE = Path(__file__).resolve().parent
+from harness import REPO, RESULTS
 ORDER = ["robustness", "robustness_defaults", "submap_size", "submap_size_submap", "accuracy", "upgrade_pipeline", "upgrade", "failfast", "pipeline", "pipeline_shortcuts", "ransac", "backend", "evaluation",
          "keyframe_graph", "levers", "authors_v1", "render", "retrieval_orb", "salad", "vggt", "pi3", "da3", "models", "cpu_estimate", "overlap", "gpu_run", "localize", "export",
          "keyframe_format", "viewer", "viewer_open", "test_suite"]
@@ -24,13 +22,13 @@ with `python benchmarks/collect.py` after running the scripts.
 def main() -> None:
     sections = []
     for name in ORDER:
-        path = HERE / "results" / f"{name}.md"
+        path = RESULTS / f"{name}.md"
         if path.is_file():
             text = path.read_text().strip()
             # demote the sections' own top-level titles under this file's title
             text = "\n".join("#" + line if line.startswith("#") else line for line in text.splitlines())
             sections.append(text)
-    (HERE.parent / "BENCHMARKS.md").write_text(HEADER + "\n\n".join(sections) + "\n")
+    (REPO / "BENCHMARKS.md").write_text(HEADER + "\n\n".join(sections) + "\n")
 
 
 if __name__ == "__main__":

@@ -93,3 +93,37 @@ def test_advanced_settings_are_grouped_last_in_help() -> None:
     assert text.index("--ransac-hypothesis-batch") > text.index("--sim-perspective")  # advanced after every main group
     assert "[alignment] advanced settings" in text
     assert AlignmentConfig.advanced <= {f.name for f in dataclasses.fields(AlignmentConfig)}
+
+
+def test_resolve_settles_every_auto_a_stage_would_read_and_takes_only_the_users_config() -> None:
+    """The resolved tree holds no "auto" that a stage reads: the device, a model's precision and
+    weights, the graph, the links, the upgrade, the retrieval and the attention check are settled;
+    "auto" intrinsics become a flag to read the source's calibration. A resolved config is not
+    resolved again."""
+    config = SLAMConfig(frontend="da3-small", device="cpu")
+    config.source.intrinsics = "auto"
+    resolved = resolve(config)
+    settled = resolved.config
+    assert settled.model.dtype == "fp32" and settled.model.weights.startswith("depth-anything/")
+    assert (settled.backend.graph, settled.alignment.model, settled.upgrade.mode) == ("keyframe", "calibration", "off")
+    assert settled.retrieval.kind in ("orb", "salad") and settled.loops.verify_attention == "off"
+    assert resolved.intrinsics is None and resolved.intrinsics_from_source
+    given = SLAMConfig(frontend="simulated")
+    given.source.intrinsics = "500,500,320,240"
+    known = resolve(given)
+    assert known.intrinsics.values() == [500.0, 500.0, 320.0, 240.0] and not known.intrinsics_from_source
+    assert config.model.dtype == "auto" and config.source.intrinsics == "auto"  # the user's tree is not changed
+    with pytest.raises(TypeError, match="takes a SLAMConfig"):
+        resolve(resolved)
+
+
+def test_field_declarations_are_the_one_home_of_their_flags_and_ranges() -> None:
+    """A section's flag overrides, choices, help groups and single-field ranges come from its fields'
+    ``setting(...)`` declarations; a field's own range is checked by the base section."""
+    fields = {f.name: f for f in dataclasses.fields(AlignmentConfig)}
+    assert AlignmentConfig.flag("model") == "--alignment" and fields["model"].metadata["flag"] == "--alignment"
+    assert "planar_model" in AlignmentConfig.advanced and AlignmentConfig.choices["planar_model"][0] == "by-support"
+    assert {name for name, f in fields.items() if f.metadata.get("advanced")} == AlignmentConfig.advanced
+    bad = AlignmentConfig(inlier_threshold=-1.0)
+    with pytest.raises(UserError, match="--ransac-inlier-threshold \\(config key alignment.inlier_threshold\\)"):
+        bad.validate()

@@ -284,10 +284,9 @@ def test_unknown_size_and_precision():
         load_da3(size="huge")
     from sl4slam.models.da3.weights import resolve_precision
 
-    cpu = torch.device("cpu")
-    assert resolve_precision("auto", cpu) is None and resolve_precision("bf16", cpu) == torch.bfloat16
+    assert resolve_precision("fp32") is None and resolve_precision("bf16") == torch.bfloat16
     with pytest.raises(UserError, match="unknown Depth Anything 3 dtype"):
-        resolve_precision("int4", cpu)
+        resolve_precision("int4")
 
 
 def test_random_weights_run_end_to_end():

@@ -11,6 +11,7 @@ from scipy.linalg import logm
 from scipy.spatial.transform import Rotation
 
 from sl4slam.alignment import camera_constrained_sl4, estimate_sl4, make_aligner, shared_pixels
+from sl4slam.resolve import resolve
 from sl4slam.backend import SL4Backend
 from sl4slam.backend.evidence import edge_information, tangent_coordinates, transfer_jacobians
 from sl4slam.config import AlignmentConfig, BackendConfig, SLAMConfig
@@ -160,14 +161,14 @@ def test_camera_constrained_fit_recovers_a_planar_frame() -> None:
     view_b = FrameView(X_b.reshape(60, 50, 3).astype(np.float32), np.ones((60, 50), bool), K, T_cam_b)
     config = submap_graph_config()
     config.alignment.planar_model = "camera-constrained"
-    aligned = make_aligner(config).align(view_a, view_b, seed=0)
+    aligned = make_aligner(resolve(config)).align(view_a, view_b, seed=0)
     assert aligned.model == "sl4" and "camera-constrained" in aligned.fallback
     np.testing.assert_allclose(apply_transform(aligned.H, X_b), X_a, atol=1e-4)
     # the hybrid link never takes that fit: a degenerate frame gets the frame's camera link, as its own choice
     config.alignment.model = "hybrid"
-    linked = make_aligner(config).align(view_a, view_b, seed=0)
+    linked = make_aligner(resolve(config)).align(view_a, view_b, seed=0)
     assert is_camera_link(linked) and linked.fallback is None and "flat" in linked.extras["degenerate"]
-    camera_link = make_aligner(config).camera_edge(view_a, view_b)
+    camera_link = make_aligner(resolve(config)).camera_edge(view_a, view_b)
     np.testing.assert_allclose(linked.H, camera_link.H, atol=1e-12)
 
 
@@ -190,10 +191,10 @@ def test_calibration_scale_link_measures_a_flat_frame_without_its_points() -> No
     view_a = FrameView(apply_transform(se3_inverse(T_cam_a), warped).reshape(60, 80, 3).astype(np.float32),
                        np.ones((60, 80), bool), K_a, T_cam_a)
     view_b = FrameView(X_b.reshape(60, 80, 3).astype(np.float32), np.ones((60, 80), bool), K_b, T_cam_b)
-    aligned = make_aligner(submap_graph_config()).align(view_a, view_b, seed=0)
+    aligned = make_aligner(resolve(submap_graph_config())).align(view_a, view_b, seed=0)
     assert "calibration-and-scale" in aligned.fallback and aligned.extras["scale"] == pytest.approx(scale, rel=0.02)
     np.testing.assert_allclose(apply_transform(aligned.H, X_b), X_a, atol=0.02 * 2.5 * scale)
-    exact = make_aligner(submap_graph_config()).camera_edge(
+    exact = make_aligner(resolve(submap_graph_config())).camera_edge(
         dataclasses.replace(view_a, points=X_a.reshape(60, 80, 3).astype(np.float32)), view_b)
     np.testing.assert_allclose(apply_transform(exact.H, X_b), X_a, atol=1e-5)
 
@@ -216,8 +217,8 @@ def test_camera_links_are_weighted_by_their_cameras_fitted_edges_by_their_points
     wrong_T_cam_a = wrong @ T_cam_a
     views = [FrameView(apply_transform(se3_inverse(T), X_cam).reshape(60, 80, 3).astype(np.float32),
                        np.ones((60, 80), bool), K, T) for T in (wrong_T_cam_a, np.eye(4))]
-    link = make_aligner(SLAMConfig()).camera_edge(*views)
-    true_link = make_aligner(SLAMConfig()).camera_edge(
+    link = make_aligner(resolve(SLAMConfig())).camera_edge(*views)
+    true_link = make_aligner(resolve(SLAMConfig())).camera_edge(
         dataclasses.replace(views[0], points=apply_transform(se3_inverse(T_cam_a), X_cam).reshape(60, 80, 3).astype(np.float32),
                             T_cam_submap=T_cam_a), views[1])
     assert is_camera_link(link) and link.rms < 1e-5  # the points agree with the wrong camera exactly

@@ -43,7 +43,7 @@ def test_the_three_ways_to_give_a_calibration(tmp_path: Path) -> None:
     np.testing.assert_allclose(parse_intrinsics(str(tmp_path / "cameras.txt")).K, given.K)
     (tmp_path / "opencv.txt").write_text("1 OPENCV 640 480 517.3 516.5 319.1 255.8 0.26 -0.95 -0.005 0.003\n")
     assert "distortion ignored" in parse_intrinsics(str(tmp_path / "opencv.txt")).note
-    assert parse_intrinsics("") is None and parse_intrinsics("auto") is None  # auto: the source says
+    assert parse_intrinsics("") is None  # "auto" (the source says) is settled by resolve, not parsed
 
 
 @pytest.mark.parametrize("spec, words", [
@@ -93,7 +93,7 @@ def test_points_are_rebuilt_along_the_true_rays_whatever_focal_the_model_guessed
     frames = [source.get(i) for i in (0, 6, 12, 18, 24)]
     config = SimulatorConfig(focal_error=0.1, depth_noise=0.0, outlier_fraction=0.0, normalize_scale=False, seed=3)
     prediction = SimulatedFrontend(config).reconstruct(frames, 0)
-    known = from_source(source, "auto")
+    known = from_source(source, None, read_calibration=True)
     K_grid = on_grid(known.K, np.eye(3)[None].repeat(len(frames), 0))
     assert np.abs(prediction.K[:, 0, 0] / K_grid[:, 0, 0] - 1).max() > 0.02  # the model's focal is off
     T_world_cam = np.stack([f.T_world_cam for f in frames])
@@ -197,7 +197,7 @@ def test_frames_without_sensor_depth_keep_the_neighbours_scale(world: Path, tmp_
         def reconstruct(self, batch, submap_id, **kwargs):
             return super().reconstruct([originals[f.index] for f in batch], submap_id, **kwargs)
 
-    result = SLAMPipeline(config, SensorHoles(config.sim)).run(ListSource(holes), progress=False)
+    result = SLAMPipeline.from_config(config, SensorHoles(config.sim)).run(ListSource(holes), progress=False)
     report = result.stats["metric_depth"]
     assert report["kept_neighbour_scale"] >= 1 and report["submaps_scaled"] >= 1
     assert np.isfinite(result.T_world_cam).all()

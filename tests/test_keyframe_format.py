@@ -31,6 +31,7 @@ from sl4slam.geometry import se3_inverse
 from sl4slam.io import open_source
 from sl4slam.localize import localize_frames, views_from_pipeline, views_from_result
 from sl4slam.pipeline import SLAMPipeline
+from sl4slam.resolve import resolve
 from sl4slam.result import SLAMResult, keyframe_cameras
 from sl4slam.result.outputs import keyframe_world_points, read_ply, write_outputs
 from sl4slam.result.reading import COMPACT_POINT_TOLERANCE, decode_depth, encode_depth, load_result
@@ -75,12 +76,12 @@ def _config(graph: str) -> SLAMConfig:
 def run(request, world, tmp_path_factory) -> SimpleNamespace:
     """One pipeline run, its outputs written three times: ``full/``, ``compact/``, ``none/``."""
     config = _config(request.param)
-    result = SLAMPipeline(config, retrieval=None).run(open_source(str(world)), progress=False)
+    result = SLAMPipeline.from_config(config, retrieval=None).run(open_source(str(world)), progress=False)
     root = tmp_path_factory.mktemp(f"run_{request.param}")
     for layout in ("full", "compact", "none"):
         written = copy.deepcopy(config)
         written.output.keyframes = layout
-        write_outputs(result, root / layout, written, source_name="world")
+        write_outputs(result, root / layout, resolve(written), source_name="world")
     _assert_layout(root / "full", "full")
     _assert_layout(root / "compact", "compact")
     return SimpleNamespace(root=root, result=result, graph=request.param, world=world)
@@ -254,7 +255,7 @@ def test_invalid_pixels_and_the_plane_at_infinity(tmp_path) -> None:
     for layout in ("full", "compact"):
         config = SLAMConfig()
         config.output.keyframes = layout
-        write_outputs(result, tmp_path / layout, config)
+        write_outputs(result, tmp_path / layout, resolve(config))
         (record,) = load_result(tmp_path / layout).keyframes
         loaded[layout] = record.load()
     full, compact = loaded["full"], loaded["compact"]
@@ -316,12 +317,12 @@ def test_dense_evaluation_reads_the_compact_layout(tmp_path) -> None:
     config.keyframes.tau_disparity = 4.0
     config.submap.size = 8
     config.retrieval.kind = "none"
-    result = SLAMPipeline(config, retrieval=None).run(dataset.open(sequence), progress=False)
+    result = SLAMPipeline.from_config(config, retrieval=None).run(dataset.open(sequence), progress=False)
     clouds = {}
     for layout in ("full", "compact"):
         written = copy.deepcopy(config)
         written.output.keyframes = layout
-        write_outputs(result, tmp_path / layout, written)
+        write_outputs(result, tmp_path / layout, resolve(written))
         _assert_layout(tmp_path / layout, layout)
         clouds[layout] = keyframe_clouds(tmp_path / layout, dataset, sequence, written, max_depth=10.0)
     (estimate_full, truth_full, used_full), (estimate, truth, used) = clouds["full"], clouds["compact"]

@@ -276,7 +276,7 @@ def test_graph_setting() -> None:
     with pytest.raises(UserError, match="--graph"):
         resolve(config)
     config.backend.graph, config.alignment.model = "submap", "sl4"
-    with pytest.raises(UserError, match="--alignment sl4"):
+    with pytest.raises(UserError, match="--alignment \\(config key alignment.model\\) sl4"):
         resolve(config)
     config.backend.kind, config.alignment.model, config.retrieval.kind = "sl4", "auto", "none"
     assert not resolve(config).attention_check  # no retrieval: no loops to check
@@ -302,7 +302,7 @@ def world_config(graph: str, false_loop_rate: float = 0.0, **sim) -> SLAMConfig:
 
 
 def run(world: Path, config: SLAMConfig):
-    pipeline = SLAMPipeline(config)
+    pipeline = SLAMPipeline.from_config(config)
     return pipeline, pipeline.run(open_source(str(world)), progress=False)
 
 

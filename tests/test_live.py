@@ -270,7 +270,7 @@ def test_pipeline_runs_on_a_video_played_at_its_frame_rate(tmp_path: Path) -> No
     config.retrieval.kind = "none"
     clock = ManualClock()
     source = LiveSource(tmp_path / "w.avi", clock=clock)
-    pipeline = SLAMPipeline(config, WithTruth(config.sim))
+    pipeline = SLAMPipeline.from_config(config, WithTruth(config.sim))
     made = [0]
 
     def keyframes_made() -> int:  # asked by the source when the pipeline wants the next frame

@@ -34,7 +34,7 @@ def world(tmp_path_factory):
 def world_run(world):
     config = small_world_config(perspective=0.1)
     config.keyframes.tau_disparity = 12.0  # fewer keyframes: about half the frames are localized
-    pipeline = SLAMPipeline(config, retrieval=None)
+    pipeline = SLAMPipeline.from_config(config, retrieval=None)
     source = open_source(str(world))
     return source, pipeline.run(source, progress=False), config
 
@@ -144,7 +144,7 @@ def test_all_frames_on_the_tum_excerpt(shared_dir) -> None:
     config.retrieval.kind = "none"
     config.sim.perspective = 0.1
     source = open_source(str(shared_dir / "data" / "tum_rgbd_fr1_xyz_first37"))
-    result = SLAMPipeline(config, retrieval=None).run(source, progress=False)
+    result = SLAMPipeline.from_config(config, retrieval=None).run(source, progress=False)
     poses = localize_frames(source, _views(result))
     assert poses.failed == [] and (~poses.is_keyframe).sum() >= 25
     split = split_ate(poses)

@@ -73,7 +73,7 @@ def test_each_model_runs_the_whole_pipeline(world: Path, fixtures_dir: Path, nam
     config.retrieval.kind = "none"
     config.source.intrinsics = intrinsics
     with torch.no_grad():
-        result = SLAMPipeline(config, frontend=frontend).run(open_source(str(world)), progress=False)
+        result = SLAMPipeline.from_config(config, frontend=frontend).run(open_source(str(world)), progress=False)
     assert len(result.keyframes) >= 4
     assert len(set(result.timestamps)) == len(result.timestamps)
     assert np.isfinite(result.T_world_cam).all() and np.isfinite(result.K).all()

@@ -205,7 +205,7 @@ def test_overlapping_submaps_end_to_end(world: Path, graph: str) -> None:
         config.keyframes.tau_disparity = 12.0
         config.backend.graph = graph
         config.submap.overlap = overlap
-        results[overlap] = SLAMPipeline(config).run(open_source(str(world)), progress=False)
+        results[overlap] = SLAMPipeline.from_config(config).run(open_source(str(world)), progress=False)
     one, two = results[1], results[2]
     assert [k.frame_index for k in two.keyframes] == [k.frame_index for k in one.keyframes]
     assert len(set(two.timestamps)) == len(two.timestamps)
@@ -307,7 +307,7 @@ def test_loop_frames_are_reconstructed_with_the_new_submap(world: Path, loop_fra
     config.keyframes.tau_disparity = 12.0
     config.retrieval.kind = "orb"
     config.submap.loop_frames = loop_frames
-    pipeline = SLAMPipeline(config)
+    pipeline = SLAMPipeline.from_config(config)
     given: dict[int, list[int]] = {}
     reconstruct = pipeline.frontend.reconstruct
 
@@ -413,7 +413,7 @@ def chain_sigmas(world: Path, monkeypatch, **sim) -> list[tuple[bool, float, flo
     config.retrieval.kind = "none"
     for key, value in sim.items():
         setattr(config.sim, key, value)
-    SLAMPipeline(config).run(open_source(str(world)), progress=False)
+    SLAMPipeline.from_config(config).run(open_source(str(world)), progress=False)
     return seen
 
 

@@ -50,7 +50,7 @@ def run(world: Path, **kwargs):
     key = tuple(sorted(kwargs.items()))
     if key not in _results:
         config = make_config(**kwargs)
-        pipeline = SLAMPipeline(config)
+        pipeline = SLAMPipeline.from_config(config)
         _results[key] = pipeline.run(open_source(str(world)), progress=False)
         _pipelines[key] = pipeline
     return _results[key]
@@ -121,7 +121,7 @@ def test_metric_upgrade_that_cannot_be_estimated_keeps_the_map(world: Path, monk
 def test_run_is_deterministic(world: Path) -> None:
     first = run(world, backend="sl4")
     config = make_config()
-    again = SLAMPipeline(config).run(open_source(str(world)), progress=False)
+    again = SLAMPipeline.from_config(config).run(open_source(str(world)), progress=False)
     np.testing.assert_array_equal(first.T_world_cam, again.T_world_cam)
 
 
@@ -162,7 +162,7 @@ def test_no_confident_pixel_falls_back_to_camera_edges(world: Path) -> None:
     shared frame's cameras (listed as a fallback), and the run still completes."""
     config = make_config(retrieval="none")
     frames = [open_source(str(world)).get(i) for i in range(0, 120)]
-    pipeline = SLAMPipeline(config, _LowConfidence(config.sim))
+    pipeline = SLAMPipeline.from_config(config, _LowConfidence(config.sim))
     result = pipeline.run(ListSource(frames), progress=False)
     odometry = [e for e in result.edges if e.kind == "odometry"]
     assert len(odometry) == result.stats["submaps"] - 1 >= 1
@@ -176,7 +176,7 @@ def test_static_camera_is_a_clear_error(world: Path) -> None:
     frames = [frame.__class__(**{**frame.__dict__, "index": i, "timestamp": float(i)}) for i in range(5)]
     config = make_config(retrieval="none")
     with pytest.raises(UserError, match="keyframe"):
-        SLAMPipeline(config, retrieval=None).run(ListSource(frames), progress=False)
+        SLAMPipeline.from_config(config, retrieval=None).run(ListSource(frames), progress=False)
 
 
 @pytest.mark.slow
@@ -209,7 +209,7 @@ def test_fallback_links_are_completed_from_the_cameras(world: Path) -> None:
     for complete in (False, True):
         config = make_config(perspective=0.1, complete_links=complete)
         config.sim.distort_first_submap = True  # the realistic case: a distortion the upgrade must remove
-        pipeline = SLAMPipeline(config)
+        pipeline = SLAMPipeline.from_config(config)
         result = pipeline.run(open_source(str(world)), progress=False)
         assert result.stats["metric_upgrade"][0]["applied"]
         ate[complete] = compute_ate(result).rmse

@@ -52,7 +52,7 @@ def test_a_model_is_recognized_from_its_hub_id_or_its_weights_file(fixtures_dir:
     assert resolved.frontend.name == "vggt" and resolved.config.model.weights == str(weights)
     assert any("recognized" in note for note in resolved.notes)
     config.frontend = str(fixtures_dir / "salad_tiny" / "state_dict.safetensors")  # weights of no frontend
-    with pytest.raises(UserError, match="unknown model or frontend"):
+    with pytest.raises(UserError, match="is an unknown model or frontend"):
         resolve(config)
 
 

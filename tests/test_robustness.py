@@ -12,7 +12,8 @@ import pytest
 from sl4slam.backend import BackendUpdateError, SL4PoseGraph, SubmapBackend
 from sl4slam.config import SLAMConfig
 from sl4slam.errors import UserError
-from sl4slam.frontend import CachingFrontend, ReplayFrontend, make_frontend
+from sl4slam.compose import make_frontend
+from sl4slam.frontend import CachingFrontend, ReplayFrontend
 from sl4slam.frontend.simulated import SimulatedFrontend
 from sl4slam.io import ListSource, open_source
 from sl4slam.result.outputs import compute_ate, write_outputs
@@ -40,7 +41,7 @@ def small_config(false_loop_rate: float = 0.0, **sim) -> SLAMConfig:
 
 
 def run(world: Path, config: SLAMConfig, frontend=None, backend=None):
-    pipeline = SLAMPipeline(config, frontend, backend=backend)
+    pipeline = SLAMPipeline.from_config(config, frontend, backend=backend)
     return pipeline, pipeline.run(open_source(str(world)), progress=False)
 
 
@@ -66,19 +67,19 @@ def test_a_frontend_without_match_scores_runs_without_the_attention_check(small_
     either, whatever its reconstruct() accepts."""
     config = small_config()
     config.backend.graph = "keyframe"  # whose "auto" attention check is on
-    plain = SLAMPipeline(config, FailingFrontend(config.sim, set()))
-    scoring = SLAMPipeline(config)
+    plain = SLAMPipeline.from_config(config, FailingFrontend(config.sim, set()))
+    scoring = SLAMPipeline.from_config(config)
     assert scoring.loop_verifier.attention and not plain.loop_verifier.attention
     recording = tmp_path / "cache"
-    unscored = SLAMPipeline(config, CachingFrontend(FailingFrontend(config.sim, set()), recording), retrieval=None)
+    unscored = SLAMPipeline.from_config(config, CachingFrontend(FailingFrontend(config.sim, set()), recording), retrieval=None)
     unscored.run(open_source(str(small_world)), progress=False)
-    replayed = SLAMPipeline(config, make_frontend(config, replay_dir=recording))
+    replayed = SLAMPipeline.from_config(config, make_frontend(config, replay_dir=recording))
     assert not replayed.frontend.capabilities.scores_pairs and not replayed.loop_verifier.attention
     config.loops.verify_attention = "on"
-    with pytest.raises(UserError, match="--loop-verify-attention on needs image-match ratios"):
-        SLAMPipeline(config, FailingFrontend(config.sim, set()))
-    with pytest.raises(UserError, match="--loop-verify-attention on needs image-match ratios"):
-        SLAMPipeline(config, make_frontend(config, replay_dir=recording))
+    with pytest.raises(UserError, match="--loop-verify-attention \\(config key loops.verify_attention\\) on needs image-match ratios"):
+        SLAMPipeline.from_config(config, FailingFrontend(config.sim, set()))
+    with pytest.raises(UserError, match="--loop-verify-attention \\(config key loops.verify_attention\\) on needs image-match ratios"):
+        SLAMPipeline.from_config(config, make_frontend(config, replay_dir=recording))
 
 
 def test_a_failing_submap_is_skipped_and_the_run_goes_on(small_world: Path) -> None:
@@ -97,7 +98,7 @@ def test_a_failing_submap_is_skipped_and_the_run_goes_on(small_world: Path) -> N
 def test_a_frontend_failing_again_and_again_ends_the_run_with_its_results(small_world: Path, tmp_path: Path) -> None:
     config = small_config()
     with pytest.raises(FrontendFailedError, match="3 submaps in a row"):
-        SLAMPipeline(config, FailingFrontend(config.sim, {3, 4, 5})).run(open_source(str(small_world)), progress=False)
+        SLAMPipeline.from_config(config, FailingFrontend(config.sim, {3, 4, 5})).run(open_source(str(small_world)), progress=False)
     # through the runner the finished part is written before the run ends
     import sl4slam.compose as compose
 
@@ -273,7 +274,7 @@ class UnreadableLoopFrames(ListSource):
 def test_a_loop_frame_that_cannot_be_read_is_rejected_not_fatal(small_world: Path) -> None:
     config = small_config()
     frames = list(open_source(str(small_world)))
-    pipeline = SLAMPipeline(config)
+    pipeline = SLAMPipeline.from_config(config)
     result = pipeline.run(UnreadableLoopFrames(frames), progress=False)
     rejected = [e for e in result.edges if e.kind == "loop" and not e.accepted]
     assert rejected and all("cannot be read again" in e.reason for e in rejected)

@@ -69,7 +69,7 @@ class DroppingGraph(SL4PoseGraph):
 
 
 def _outputs(world: Path, out: Path, config: SLAMConfig, frontend=None, backend=None) -> tuple[SLAMPipeline, dict]:
-    pipeline = SLAMPipeline(config, frontend, backend=backend)
+    pipeline = SLAMPipeline.from_config(config, frontend, backend=backend)
     result = pipeline.run(open_source(str(world)), progress=False)
     summary = write_outputs(result, out, pipeline.resolved, source_name="world")
     return pipeline, summary
@@ -149,7 +149,7 @@ def test_the_next_forward_runs_while_the_graph_works(world: Path, monkeypatch) -
                 submitted[2].wait(timeout=120)  # the keyframes of submap 2 are selected meanwhile
             return super().reconstruct(frames, submap_id, **kwargs)
 
-    pipeline = SLAMPipeline(config, SlowModel(config.sim))
+    pipeline = SLAMPipeline.from_config(config, SlowModel(config.sim))
     integrate = pipeline.integrate
     overlapped = []
 

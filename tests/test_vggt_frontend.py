@@ -54,7 +54,7 @@ def tiny_model(tmp_path_factory) -> VGGT:
 
 
 def test_reconstruct_returns_the_model_outputs_on_its_grid(tiny_model):
-    frontend = VGGTFrontend(ModelConfig(), model=tiny_model, with_points=True, device="cpu")
+    frontend = VGGTFrontend(ModelConfig(dtype="fp32"), model=tiny_model, with_points=True, device="cpu")
     assert isinstance(frontend, Frontend) and frontend.name == "vggt"
     frames = _frames(3, height=48, width=128)
     prediction = frontend.reconstruct(frames, submap_id=0)
@@ -88,7 +88,7 @@ def test_reconstruct_returns_the_model_outputs_on_its_grid(tiny_model):
 
 
 def test_pad_mode_and_no_points(tiny_model):
-    frontend = VGGTFrontend(ModelConfig(preprocess_mode="pad"), model=tiny_model, device="cpu")
+    frontend = VGGTFrontend(ModelConfig(dtype="fp32", preprocess_mode="pad"), model=tiny_model, device="cpu")
     prediction = frontend.reconstruct(_frames(2, height=128, width=96), submap_id=3)
     assert prediction.depth.shape == (2, 518, 518) and prediction.points is None
     # Portrait 96x128 -> 392x518, centred with 63 white columns each side.
@@ -98,7 +98,7 @@ def test_pad_mode_and_no_points(tiny_model):
 
 def test_weights_are_loaded_from_a_file_on_first_use(tmp_path):
     path = make_random_checkpoint(tmp_path / "small.safetensors")
-    frontend = VGGTFrontend(ModelConfig(weights=str(path)), device="cpu")
+    frontend = VGGTFrontend(ModelConfig(dtype="fp32", weights=str(path)), device="cpu")
     assert frontend._model is None  # nothing loaded before the first submap
     prediction = frontend.reconstruct(_frames(2, height=48), submap_id=0)
     assert frontend.model.config == SMALL_CONFIG
@@ -108,7 +108,7 @@ def test_weights_are_loaded_from_a_file_on_first_use(tmp_path):
 
 
 def test_missing_weights_fail_with_instructions(tmp_path):
-    frontend = VGGTFrontend(ModelConfig(weights=str(tmp_path / "model.pt")), device="cpu")
+    frontend = VGGTFrontend(ModelConfig(dtype="fp32", weights=str(tmp_path / "model.pt")), device="cpu")
     with pytest.raises(MissingWeightsError, match="--weights PATH"):
         frontend.reconstruct(_frames(2), submap_id=0)
 
@@ -116,22 +116,22 @@ def test_missing_weights_fail_with_instructions(tmp_path):
 def test_device_and_dtype_resolution():
     cpu = torch.device("cpu")
     assert resolve_device("cpu") == cpu
-    assert resolve_compute_dtype("auto", cpu) == torch.float32
+    assert resolve_compute_dtype("fp32", cpu) == torch.float32
     assert resolve_compute_dtype("bf16", cpu) == torch.bfloat16
     assert resolve_compute_dtype("fp16", torch.device("cuda")) == torch.float16
     with pytest.raises(UserError):
         resolve_compute_dtype("int4", cpu)
     with pytest.raises(UserError):
-        VGGTFrontend(ModelConfig(preprocess_mode="stretch"), device="cpu")
+        VGGTFrontend(ModelConfig(dtype="fp32", preprocess_mode="stretch"), device="cpu")
 
 
 def test_a_match_layer_the_model_lacks_is_refused_when_the_loop_check_needs_it(tiny_model):
     """The attention loop check reads global layer ``match_layer`` (21 of VGGT-1B's 24); a smaller
     model without it is refused when the weights load, before any frame, naming the fix."""
     with pytest.raises(UserError, match="--match-layer 21 does not exist: the model has 4 global attention layers"):
-        VGGTFrontend(ModelConfig(), model=tiny_model, match_scores=True, device="cpu")
-    VGGTFrontend(ModelConfig(), model=tiny_model, device="cpu")  # no loop check: the layer is never read
-    VGGTFrontend(ModelConfig(match_layer=3), model=tiny_model, match_scores=True, device="cpu")
+        VGGTFrontend(ModelConfig(dtype="fp32"), model=tiny_model, match_scores=True, device="cpu")
+    VGGTFrontend(ModelConfig(dtype="fp32"), model=tiny_model, device="cpu")  # no loop check: the layer is never read
+    VGGTFrontend(ModelConfig(dtype="fp32", match_layer=3), model=tiny_model, match_scores=True, device="cpu")
     if not torch.cuda.is_available():
         with pytest.raises(UserError, match="no CUDA"):
             resolve_device("cuda")

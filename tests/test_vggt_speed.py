@@ -102,7 +102,9 @@ def test_chunked_dense_heads_match_unchunked(tiny):
 
 
 def test_resolve_precision():
-    assert resolve_precision("auto", CPU).mode == "fp32"
+    assert resolve_precision("fp32", CPU).mode == "fp32"
+    with pytest.raises(ValueError, match="unknown"):  # "auto" is settled by sl4slam.resolve before
+        resolve_precision("auto", CPU)
     assert resolve_precision("int8", CPU).autocast is None
     bf16 = resolve_precision("bf16", CPU)
     assert (bf16.storage, bf16.autocast, bf16.activation_bytes) == (torch.bfloat16, torch.bfloat16, 2)
@@ -197,8 +199,8 @@ def test_frontend_int8_and_memory_budget():
     assert worst > 0 and median < 1e-2
     # A budget: the chunk follows it, and a submap that cannot fit is refused before any work.
     height, width = prediction.depth.shape[1:]
-    roomy = VGGTFrontend(ModelConfig(max_memory_gb=64.0), model=_small_model(), device="cpu")
+    roomy = VGGTFrontend(ModelConfig(dtype="fp32", max_memory_gb=64.0), model=_small_model(), device="cpu")
     assert roomy.head_chunk(3, height, width) == 3
-    tight = VGGTFrontend(ModelConfig(max_memory_gb=0.1), model=_small_model(), device="cpu")
+    tight = VGGTFrontend(ModelConfig(dtype="fp32", max_memory_gb=0.1), model=_small_model(), device="cpu")
     with pytest.raises(UserError, match="below the smallest budget any setting fits"):
         tight.reconstruct(frames, 0)

@@ -686,7 +686,7 @@ def test_live_viewer_follows_a_real_run(tmp_path: Path) -> None:
     viewer = LiveViewer(ViewerSettings(port=_free_port(), point_budget=50_000), stream=io.StringIO())
     calls = []
     try:
-        pipeline = SLAMPipeline(config,
+        pipeline = SLAMPipeline.from_config(config,
                                 on_submap=lambda p, s: (calls.append(s), viewer.on_submap(p, s)))
         result = pipeline.run(open_source(str(world)), progress=False)
         viewer.finish(result, {"counts": result.stats, "ate": {"rmse": 0.01, "poses": len(result.keyframes)}})

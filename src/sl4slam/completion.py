@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from .config import UpgradeConfig
+from .upgrade import UpgradeConfig
 from .geometry import normalize_sl4, projection_intrinsics
 from .upgrade import intrinsic_constraint_residuals
 

@@ -15,13 +15,15 @@ from dataclasses import dataclass
 from typing import Any
 
 from .backend import Backend
+from .config import SLAMConfig
+from .errors import UserError
 from .frontend import build_frontend, replay_capabilities
-from .registry import aligner_entry, graph_entry, retrieval_entry
 from .resolve import ResolvedConfig, resolve
 from .retrieval.false_loops import FalseLoopRetrieval
 from .types import Aligner, Frontend, Retrieval
 
-__all__ = ["Stages", "build_frontend", "build_retrieval", "build_stages", "replay_capabilities", "stages_for"]
+__all__ = ["Stages", "build_frontend", "build_retrieval", "build_stages", "make_frontend", "replay_capabilities",
+           "stages_for"]
 
 _BUILD = object()  # "build this stage from the config" (``None`` is a valid retrieval: no loops)
 
@@ -50,8 +52,12 @@ def build_stages(resolved: ResolvedConfig, frontend: Frontend | None = None, ret
     frontend = build_frontend(resolved, frontend, replay_dir, cache_dir)
     if retrieval is _BUILD:
         retrieval = build_retrieval(resolved)
-    aligner = aligner if aligner is not None else aligner_entry(resolved.alignment.value).build(resolved)
-    backend = backend if backend is not None else graph_entry(resolved.graph.value).build(resolved)
+    given = aligner is not None or backend is not None
+    aligner = aligner if aligner is not None else resolved.config.alignment.setup(resolved)
+    backend = backend if backend is not None else resolved.config.backend.setup(resolved)
+    if given and aligner.group == "sl4" and backend.kind != "sl4":  # the config's pair is checked by resolve
+        raise UserError(f"the {aligner.model} aligner measures projective transforms, which a "
+                        f"{backend.kind} graph cannot hold; use a Sim(3) alignment model")
     return Stages(frontend, retrieval, aligner, backend)
 
 
@@ -59,13 +65,21 @@ def build_retrieval(resolved: ResolvedConfig) -> Retrieval | None:
     """The retrieval the config names (``None``: no loop closure), wrapped in
     :class:`~sl4slam.retrieval.false_loops.FalseLoopRetrieval` when ``[false_loops] rate`` is positive."""
     config = resolved.config
-    retrieval = retrieval_entry(resolved.retrieval.value).build(resolved)
+    retrieval = config.retrieval.setup(resolved)
     if retrieval is not None and config.false_loops.rate > 0:
         return FalseLoopRetrieval(retrieval, config.false_loops, config.retrieval.tau_interval)
     return retrieval
 
 
-def stages_for(config, **stages: Any) -> tuple[ResolvedConfig, Stages]:
-    """``resolve(config)`` and :func:`build_stages` in one call (for library use)."""
+def stages_for(config: SLAMConfig, **stages: Any) -> tuple[ResolvedConfig, Stages]:
+    """``resolve(config)`` and :func:`build_stages` in one call (the entry point of library use)."""
     resolved = resolve(config)
     return resolved, build_stages(resolved, **stages)
+
+
+def make_frontend(config: SLAMConfig, replay_dir: str | os.PathLike | None = None,
+                  cache_dir: str | os.PathLike | None = None) -> Frontend:
+    """The frontend the user's settings name (resolved here), optionally replayed from or recorded
+    to a cache (:func:`build_frontend`)."""
+    resolved = resolve(config, capabilities=replay_capabilities(replay_dir) if replay_dir is not None else None)
+    return build_frontend(resolved, replay_dir=replay_dir, cache_dir=cache_dir)

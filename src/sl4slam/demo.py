@@ -44,6 +44,7 @@ def demo_config(backend: str, perspective: float, retrieval: str = "orb") -> SLA
 
 def run_demo(out_dir: Path, frames: int = 600, perspective: float = 0.2, progress: bool = True) -> dict:
     from .io import open_source
+    from .compose import build_stages
     from .pipeline import SLAMPipeline
     from .resolve import resolve
     from .result.outputs import compute_ate, plot_trajectories, write_outputs
@@ -55,7 +56,7 @@ def run_demo(out_dir: Path, frames: int = 600, perspective: float = 0.2, progres
         resolved = resolve(demo_config(backend, perspective))
         source = open_source(str(sequence), resolved.config.source)
         start = time.perf_counter()
-        result = SLAMPipeline(resolved).run(source, progress=progress)
+        result = SLAMPipeline(resolved, build_stages(resolved)).run(source, progress=progress)
         seconds = time.perf_counter() - start
         summary = write_outputs(result, out_dir / backend, resolved, source_name="synthetic world")
         ate = summary["ate"]["rmse"]

@@ -10,10 +10,10 @@ segment (see ``sl4slam.pipeline``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from .config import AlignmentConfig
 from .types import Alignment, FrameView
 
 
@@ -88,8 +88,10 @@ def is_camera_link(alignment: Alignment) -> bool:
     return alignment.extras.get("method") in ("calibration_scale", "shared_frame")
 
 
-def edge_problem(alignment: Alignment, config: AlignmentConfig, fitted: bool = True) -> str | None:
+def edge_problem(alignment: Alignment, config: Any, fitted: bool = True) -> str | None:
     """Why a measured edge must not reach the graph, or ``None``.
+
+    ``config`` is the ``[alignment]`` section (``sl4slam.alignment.settings.AlignmentConfig``).
 
     Every edge: finite, orientation-preserving (det > 0: a projective map with det < 0 has no
     SL(4) representative), condition number at most ``config.max_condition``. A fitted edge (not a

@@ -66,22 +66,23 @@ def pinhole(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
 
 
 def parse_intrinsics(spec: str) -> KnownIntrinsics | None:
-    """What ``--intrinsics`` names: ``""`` (none), ``"auto"`` (``None`` here: the source says, see
-    :func:`from_source`), ``"fx,fy,cx,cy"``, or a file (TUM-style ``fx = .. fy = .. cx = .. cy = ..``
-    text, or a COLMAP ``cameras.txt``). Raises ``UserError`` (one line) for what cannot be used."""
+    """What ``--intrinsics`` names: ``""`` (none), ``"fx,fy,cx,cy"``, or a file (TUM-style
+    ``fx = .. fy = .. cx = .. cy = ..`` text, or a COLMAP ``cameras.txt``); "auto" (read from the
+    source) is settled by ``sl4slam.resolve`` before. Raises ``UserError`` (one line) for what cannot
+    be used."""
     spec = spec.strip()
-    if not spec or spec == "auto":
+    if not spec:
         return None
     numbers = re.fullmatch(r"\s*([^,\s]+)\s*,\s*([^,\s]+)\s*,\s*([^,\s]+)\s*,\s*([^,\s]+)\s*", spec)
     if numbers is not None:
         try:
             fx, fy, cx, cy = (float(v) for v in numbers.groups())
         except ValueError:
-            raise UserError(f"--intrinsics {spec!r}: expected four numbers fx,fy,cx,cy in the source's pixels") from None
+            raise UserError(f"--intrinsics (config key source.intrinsics) {spec!r}: expected four numbers fx,fy,cx,cy in the source's pixels") from None
         return checked(KnownIntrinsics(pinhole(fx, fy, cx, cy), "given"))
     path = Path(spec).expanduser()
     if not path.is_file():
-        raise UserError(f"--intrinsics {spec!r} is neither fx,fy,cx,cy nor a file; give four numbers, a calibration "
+        raise UserError(f"--intrinsics (config key source.intrinsics) {spec!r} is neither fx,fy,cx,cy nor a file; give four numbers, a calibration "
                         "file (fx = .. fy = .. cx = .. cy = ..) or a COLMAP cameras.txt, or auto")
     text = path.read_text(encoding="utf-8", errors="replace")
     known = _colmap_cameras(text, path) if _looks_like_colmap(text) else _calibration_text(text, path)
@@ -141,19 +142,26 @@ def checked(known: KnownIntrinsics, image_size: tuple[int, int] | None = None) -
     return known
 
 
-def from_source(source, spec: str) -> KnownIntrinsics | None:
-    """The run's known intrinsics: ``spec`` parsed (``--intrinsics``), ``auto`` read from the
-    source (TUM and 7-Scenes know their camera), checked against the source's image size."""
-    if spec.strip() == "auto":
+def from_source(source, known: KnownIntrinsics | None, read_calibration: bool) -> KnownIntrinsics | None:
+    """The run's known intrinsics, checked against the source's image size.
+
+    Args:
+        source: the opened frame source.
+        known: the intrinsics the settings give (``ResolvedConfig.intrinsics``), or ``None``.
+        read_calibration: read them from the source instead (``--intrinsics auto``; TUM and 7-Scenes
+            know their camera).
+
+    Raises:
+        UserError: the source states no calibration, or the intrinsics do not fit its images.
+    """
+    if read_calibration:
         K = source.calibration()
         if K is None:
             raise UserError(f"--intrinsics auto: {source.name} states no calibration (TUM RGB-D and 7-Scenes "
                             "sequences do); give fx,fy,cx,cy or a calibration file")
         known = KnownIntrinsics(np.asarray(K, np.float64), f"auto: {source.name}")
-    else:
-        known = parse_intrinsics(spec)
-        if known is None:
-            return None
+    if known is None:
+        return None
     return checked(known, source.image_size())
 
 

@@ -6,24 +6,47 @@ the successfully tracked corners exceeds ``KeyframeConfig.tau_disparity`` pixels
 than ``KeyframeConfig.min_tracked`` corners could be tracked (texture-less view, fast motion,
 scene change: the reference is useless, so start a new one).
 
-Threshold: the paper uses 25 px, the authors' code and TUM script use 50 px; the default here
-is the paper's 25 px: 6 keyframes in the first 37 frames (1.2 s) of TUM fr1_xyz at 30 Hz,
-640x480, against 4 at 50 px. Pass ``KeyframeConfig(tau_disparity=50)`` to match the reference code.
+Threshold: the paper's 25 px by default; the authors' code and TUM script use 50 px (pass
+``KeyframeConfig(tau_disparity=50)`` to match them; decision: docs/decisions/keyframe-threshold.md).
 
-Cost: one grey conversion and one ``cv2.calcOpticalFlowPyrLK`` call per frame (about 12 ms at
-640x480 with ~800 corners on an idle 2-core CPU, ~28 ms on a loaded one, see
-``benchmarks/results/retrieval_orb.md``), plus one ``cv2.goodFeaturesToTrack`` (about 8 ms idle)
-per keyframe only. OpenCV's Python binding does not accept a prebuilt pyramid for the previous
-image, so the keyframe pyramid is rebuilt per call.
+Cost: one grey conversion and one ``cv2.calcOpticalFlowPyrLK`` call per frame, plus one
+``cv2.goodFeaturesToTrack`` per keyframe only. OpenCV's Python binding does not accept a prebuilt
+pyramid for the previous image, so the keyframe pyramid is rebuilt per call.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import ClassVar
+
 import cv2
 import numpy as np
 
-from .config import KeyframeConfig
 from .errors import UserError
+from .section import Section, setting
+
+
+@dataclass
+class KeyframeConfig(Section):
+    """Keyframe selection by Lucas-Kanade disparity (paper 4.1)."""
+
+    section: ClassVar[str] = "keyframes"
+    builds: ClassVar[str] = "sl4slam.keyframes:KeyframeSelector"
+
+    tau_disparity: float = setting(25.0, check=lambda v: v > 0, allowed="a positive number of pixels")
+    """Mean tracked displacement (px) that makes a keyframe. Paper: 25; reference code: 50."""
+    max_corners: int = setting(1000, advanced=True, check=lambda v: v >= 1, allowed="at least 1")
+    """Shi-Tomasi corners detected on the last keyframe (reference code)."""
+    corner_quality: float = setting(0.01, advanced=True, check=lambda v: 0 < v < 1, allowed="in (0, 1)")
+    """Shi-Tomasi quality level (reference code)."""
+    corner_min_distance: float = setting(8.0, advanced=True, check=lambda v: v >= 0, allowed=">= 0 px")
+    """Minimum distance between corners in px (reference code)."""
+    lk_window: int = setting(21, advanced=True, check=lambda v: v >= 3, allowed="at least 3 px")
+    """Lucas-Kanade window size in px (OpenCV default, used by the reference code)."""
+    lk_levels: int = setting(3, advanced=True, check=lambda v: v >= 0, allowed=">= 0")
+    """Lucas-Kanade pyramid levels above the full image (OpenCV's maxLevel; reference code: 3)."""
+    min_tracked: int = setting(10, advanced=True, check=lambda v: v >= 1, allowed="at least 1")
+    """A frame with fewer successfully tracked corners is always a keyframe."""
 
 
 def rgb_to_grey(rgb: np.ndarray) -> np.ndarray:

@@ -32,16 +32,52 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Iterator, Sequence
+from typing import Callable, ClassVar, Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
 
-from .config import LocalizationConfig
+
 from .errors import UserError
 from .geometry import decompose_projection, se3_inverse, to_4x4
 from .progress import Progress
+from .section import Section, setting
 from .types import Frame
+
+
+@dataclass
+class LocalizationConfig(Section):
+    """Poses of every frame (``--all-frames``, ``sl4slam.localize``): tracking into the nearest keyframe
+    and PnP against its points (defaults: OpenCV's, or ours: docs/decisions/localization.md)."""
+
+    section: ClassVar[str] = "localize"
+    flag_prefix: ClassVar[str] = "localize-"
+
+    max_corners: int = setting(500, advanced=True, check=lambda v: v >= 4, allowed="at least 4")
+    """Shi-Tomasi corners per keyframe; tracking cost grows linearly with the corners
+    (decision: docs/decisions/localization.md)."""
+    corner_quality: float = setting(0.01, advanced=True, check=lambda v: 0 < v < 1, allowed="in (0, 1)")
+    """Shi-Tomasi quality level (as the keyframe selector)."""
+    corner_min_distance: float = setting(5.0, advanced=True, check=lambda v: v >= 0, allowed=">= 0 px")
+    """Minimum spacing of corners, px on the keyframe grid."""
+    lk_window: int = setting(15, advanced=True, check=lambda v: v >= 3, allowed="at least 3 px")
+    """Lucas-Kanade window, px (decision: docs/decisions/localization.md)."""
+    lk_levels: int = setting(3, advanced=True, check=lambda v: v >= 0, allowed=">= 0")
+    """Lucas-Kanade pyramid levels above the full image (as the keyframe selector)."""
+    max_round_trip_px: float = setting(1.0, advanced=True,
+                                       check=lambda v: v > 0, allowed="a positive distance in px")
+    """Forward-backward tracking error above which a track is dropped."""
+    ransac_threshold_px: float = setting(2.0, advanced=True,
+                                         check=lambda v: v > 0, allowed="a positive distance in px")
+    """PnP RANSAC inlier threshold, px."""
+    ransac_iterations: int = setting(200, advanced=True, check=lambda v: v >= 1, allowed="at least 1")
+    """PnP RANSAC hypotheses at most."""
+    min_inliers: int = setting(15, advanced=True, check=lambda v: v >= 4, allowed="at least 4")
+    """Fewer PnP inliers than this is a failed localization."""
+    min_inlier_ratio: float = setting(0.3, advanced=True, check=lambda v: 0 <= v <= 1, allowed="in [0, 1]")
+    """A pose whose inliers are fewer than this fraction of the tracks is a failed localization."""
+    seed: int = setting(0, advanced=True, check=lambda v: v >= 0, allowed=">= 0")
+    """Seed of OpenCV's RANSAC (combined with the frame index)."""
 
 
 @dataclass

@@ -37,16 +37,59 @@ reason the run summary lists:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Any, Callable, ClassVar, Sequence
 
 import cv2
 import numpy as np
 
-from .backend import Backend
-from .backend.evidence import NoiseScale
-from .config import AlignmentConfig, LoopConfig
+from .alignment.settings import AlignmentConfig
 from .edges import edge_problem, is_camera_link
+from .section import Section, setting
 from .types import Aligner, Alignment, FrameView
+
+
+@dataclass
+class LoopConfig(Section):
+    """Which retrieved loops reach the graph (``sl4slam.loops``): one false loop bends the whole map."""
+
+    section: ClassVar[str] = "loops"
+    builds: ClassVar[str] = "sl4slam.loops:LoopVerifier"
+    flag_prefix: ClassVar[str] = "loop-"
+
+    min_inlier_ratio: float = setting(0.3, check=lambda v: 0 < v <= 1, allowed="in (0, 1]")
+    """The loop frame's own alignment (its points in the old and the new submap) must keep this
+    inlier fraction (or half the odometry's median, if that is lower) without a fallback."""
+    verify_attention: str = setting("auto", choices=("auto", "on", "off"))
+    """Check, before anything else, that the frontend's attention says the query keyframe and the loop
+    frame overlap (VGGT-SLAM 2.0's image-match ratio, ``sl4slam.models.vggt.attention``; the simulated
+    frontend's stand-in is the true overlap, ``sl4slam.frontend.overlap``): "on", "off", or "auto"
+    (on with the keyframe graph, as in VGGT-SLAM 2.0; off with the submap graph, as in VGGT-SLAM)."""
+    min_match_ratio: float = setting(0.85, check=lambda v: v >= 0, allowed=">= 0")
+    """Attention check: image-match ratio from which a loop is kept (VGGT-SLAM 2.0 reference code: 0.85)."""
+    verify_view: bool = True
+    """Check inside the new submap that the query keyframe and the loop frame see the same surfaces:
+    the loop frame's points, projected into the query keyframe, must land in its image, agree with
+    its depth and look alike (the loop frame's alignment compares two reconstructions of one image,
+    so it cannot tell a wrong place)."""
+    check_points: int = setting(4000, advanced=True, check=lambda v: v >= 100, allowed="at least 100")
+    """Pixels of the loop frame used by the view check (an evenly strided subset)."""
+    min_overlap: float = setting(0.15, advanced=True, check=lambda v: 0 <= v <= 1, allowed="in [0, 1]")
+    """View check: fraction of the loop frame's confident pixels that must project into the query
+    keyframe's image in front of its camera."""
+    depth_tolerance: float = setting(0.1, advanced=True,
+                                     check=lambda v: v > 0, allowed="a positive relative depth difference")
+    """View check: relative depth difference under which a projected point agrees with the query
+    keyframe's own depth."""
+    min_consistent: float = setting(0.3, advanced=True, check=lambda v: 0 <= v <= 1, allowed="in [0, 1]")
+    """View check: fraction of the overlapping points whose depth must agree."""
+    min_correlation: float = setting(0.3, advanced=True, check=lambda v: -1 <= v <= 1, allowed="in [-1, 1]")
+    """View check: normalized cross-correlation of the grey values of the depth-consistent points in
+    the two images (exposure-invariant); unrelated textures score about 0."""
+    verify_graph: bool = True
+    """Check that the loop agrees with the current graph: chi-square test of the loop factor's
+    whitened error under the joint covariance of its two nodes and the loop's own noise."""
+    consistency_quantile: float = setting(0.999, advanced=True, check=lambda v: 0 < v < 1, allowed="in (0, 1)")
+    """Chi-square quantile of that test (15 degrees of freedom for SL(4), 7 for Sim(3))."""
 
 BLUR_FRACTION = 0.01
 """Gaussian blur sigma of the view check's grey images, as a fraction of the image width: the
@@ -197,9 +240,9 @@ class LoopVerifier:
         attention: run the attention check (``sl4slam.resolve`` settles the setting).
     """
 
-    def __init__(self, config: LoopConfig, alignment_config: AlignmentConfig, aligner: Aligner, backend: Backend,
+    def __init__(self, config: LoopConfig, alignment_config: AlignmentConfig, aligner: Aligner, backend: Any,
                  information: Callable[[Alignment], np.ndarray], attention: bool = False,
-                 noise_scale: "NoiseScale | None" = None) -> None:
+                 noise_scale: Any = None) -> None:
         self.config = config
         self.alignment_config = alignment_config
         self.aligner = aligner

@@ -26,7 +26,7 @@ import numpy as np
 
 from .backend import Backend, WorldEstimate
 from .completion import complete_camera_link, plane_normal, shared_camera_agreement
-from .config import UpgradeConfig
+from .upgrade import UpgradeConfig
 from .errors import UserError
 from .result import world_cameras
 from .submap import StoredKeyframe, principal_points

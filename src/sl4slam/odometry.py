@@ -10,7 +10,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .backend.evidence import NoiseScale, link_scatter
-from .config import AlignmentConfig
+from .alignment.settings import AlignmentConfig
 from .edges import camera_problem, edge_problem
 from .types import Aligner, Alignment, FrameView
 

@@ -43,16 +43,13 @@ import numpy as np
 
 from .backend import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
 from .backend.evidence import NoiseScale, edge_information
-from .compose import _BUILD, build_stages
+from .compose import _BUILD, Stages, build_stages
 from .config import SLAMConfig
 from .edges import EdgeReport, is_camera_link
 from .errors import UserError
 from .geometry import normalize_sl4
 from .keyframe_store import KeyframeStore
-from .keyframes import KeyframeSelector
 from .ledger import RunLedger
-from .loops import LoopVerifier
-from .metric_frame import MetricFrame
 from .odometry import measure_odometry
 from .progress import Progress, StageTimer
 from .resolve import ResolvedConfig, resolve
@@ -92,51 +89,59 @@ class SLAMPipeline:
     """VGGT-SLAM over a frame source.
 
     Args:
-        config: the run's settings (a ``SLAMConfig`` is resolved here: ``sl4slam.resolve``).
-        frontend, retrieval, aligner, backend: stages that replace the ones the config names
-            (``retrieval=None``: no loop closure; see ``sl4slam.compose.build_stages``).
+        resolved: the run's settings, resolved once at the entry point (``sl4slam.resolve.resolve``).
+        stages: the run's stages (``sl4slam.compose.build_stages``).
         on_submap: called as ``on_submap(pipeline, submap_id)`` after every processed submap.
 
-    Example::
+    Example (:meth:`from_config` resolves the settings and builds the stages)::
 
         config = SLAMConfig(frontend="simulated")
         config.sim.profile = "vggt"
-        result = SLAMPipeline(config).run(open_source("rgbd_dataset_freiburg1_xyz", config.source))
+        result = SLAMPipeline.from_config(config).run(open_source("rgbd_dataset_freiburg1_xyz", config.source))
 
     or frame by frame: ``start(source)``, ``feed(frame)`` for each frame, ``finish()``.
     """
 
-    def __init__(self, config: SLAMConfig | ResolvedConfig, frontend: Frontend | None = None, retrieval: Any = _BUILD,
-                 aligner: Aligner | None = None, backend: Backend | None = None,
+    def __init__(self, resolved: ResolvedConfig, stages: Stages,
                  on_submap: Callable[["SLAMPipeline", int], None] | None = None) -> None:
-        # a frontend given here is resolved with its own capabilities (an explicit attention check it
-        # cannot feed is refused, "auto" runs without it); a resolved config and built stages pass as given
-        self.resolved = resolve(config, capabilities=frontend.capabilities if frontend is not None else None)
-        self.config = self.resolved.config
-        stages = build_stages(self.resolved, frontend, retrieval, aligner, backend)
+        self.resolved = resolved
+        self.config = resolved.config
         self.frontend: Frontend = stages.frontend
         self.retrieval: Retrieval | None = stages.retrieval
         self.aligner: Aligner = stages.aligner
         self.backend: Backend = stages.backend
-        if self.aligner.group == "sl4" and self.backend.kind != "sl4":  # stages given here may not go together
-            raise UserError(f"the {self.aligner.model} aligner measures projective transforms, which a "
-                            f"{self.backend.kind} graph cannot hold; use a Sim(3) alignment model")
         attention = self.resolved.attention_check and self.frontend.capabilities.scores_pairs
-        self.loop_verifier = LoopVerifier(self.config.loops, self.config.alignment, self.aligner, self.backend,
-                                          self.edge_information, attention=attention,
-                                          noise_scale=NoiseScale())  # how much edges understate their noise
-        self.metric_frame = MetricFrame(self.config.upgrade, self.backend, self.resolved.metric_upgrade,
-                                        self.resolved.complete_links)
-        self.selector = KeyframeSelector(self.config.keyframes)
+        self.loop_verifier = self.config.loops.setup(self.config.alignment, self.aligner, self.backend,
+                                                     self.edge_information, attention=attention,
+                                                     noise_scale=NoiseScale())  # how much edges understate their noise
+        self.metric_frame = self.config.upgrade.setup(self.backend, self.resolved.metric_upgrade,
+                                                      self.resolved.complete_links)
+        self.selector = self.config.keyframes.setup()
         self.on_submap = on_submap
         self.keyframe_store = KeyframeStore()
         self.ledger = RunLedger()
         self.shared = SharedFrames()
         self.stop_requested = False
-        self.knowledge = SourceKnowledge(self.config, self.frontend)  # start() makes the source's own
+        self.knowledge = SourceKnowledge(self.resolved, self.frontend)  # start() makes the source's own
         self.colors: SourceColors | None = None  # the keyframes' colours, re-read from the source
         self._next_submap_id = 0  # submap ids handed out (one may be in the model)
         self._input: _Input | None = None
+
+    @classmethod
+    def from_config(cls, config: SLAMConfig, frontend: Frontend | None = None, retrieval: Any = _BUILD,
+                    aligner: Aligner | None = None, backend: Backend | None = None,
+                    on_submap: Callable[["SLAMPipeline", int], None] | None = None) -> "SLAMPipeline":
+        """The pipeline of the user's settings (resolved here: the entry point of a library run).
+
+        Args:
+            config: the user's settings.
+            frontend, retrieval, aligner, backend: stages that replace the ones the config names
+                (``retrieval=None``: no loop closure; ``sl4slam.compose.build_stages``). A frontend
+                given here is resolved with its own capabilities.
+            on_submap: see the class.
+        """
+        resolved = resolve(config, capabilities=frontend.capabilities if frontend is not None else None)
+        return cls(resolved, build_stages(resolved, frontend, retrieval, aligner, backend), on_submap)
 
     # ------------------------------------------------------------------ what the run holds
     @property
@@ -200,7 +205,7 @@ class SLAMPipeline:
         problem = source_problem(source, self.frontend.capabilities, self.frontend.name, self.config.source)
         if problem:
             raise UserError(problem)
-        self.knowledge = SourceKnowledge(self.config, self.frontend, source)
+        self.knowledge = SourceKnowledge(self.resolved, self.frontend, source)
         self.colors = SourceColors(source, self.frontend)
         reporter = Progress(len(source), enabled=progress, every=self.config.output.progress_every, per_submap=True)
         self._input = _Input(source, make_scheduler(self, overlap=self.resolved.overlap), reporter)

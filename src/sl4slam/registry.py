@@ -52,6 +52,9 @@ class FrontendEntry:
             (``sl4slam convert``; dtype "fp32", "bf16" or "fp16").
         cpu_work: its float32 work per frame of a window on a CPU, in GFLOP-equivalents (the matmul work
             that takes as long; ``sl4slam.frontend.cost``); ``None``: no model to estimate.
+        settle_dtype: ``settle_dtype(dtype, device)``: the concrete precision mode of the ``dtype``
+            setting ("auto" included) on a device, raising ``UserError`` for a mode the model or the
+            device cannot run (``sl4slam.models.precision.settle_mode``); ``None``: no precision setting.
     """
 
     name: str
@@ -65,6 +68,7 @@ class FrontendEntry:
     recognizes: Callable[[Mapping[str, Any]], bool] | None = None
     convert: Callable[[str, str, str], Any] | None = None
     cpu_work: float | None = None
+    settle_dtype: Callable[[str, str], str] | None = None
 
 
 @dataclass(frozen=True)
@@ -211,7 +215,7 @@ def graph_names() -> list[str]:
 def frontend_entry(name: str) -> FrontendEntry:
     """The entry of frontend ``name``; ``UserError`` listing the available ones otherwise."""
     if name not in _FRONTENDS:
-        raise UserError(f"unknown model or frontend '{name}' (--model / --frontend); available: "
+        raise UserError(f"--frontend (config key frontend) '{name}' is an unknown model or frontend (also --model); available: "
                         f"{', '.join(_FRONTENDS)} (sl4slam models lists them), or a model's weights file or hub id")
     return _entry(_FRONTENDS, name)
 

@@ -7,7 +7,8 @@ downstream (the composition root, the pipeline, the outputs) reads the :class:`R
 never applies a rule again; the runner prints :meth:`ResolvedConfig.lines`, the summary records
 :meth:`ResolvedConfig.choices`.
 
-The rules (sources in the settings' docstrings, ``sl4slam.config``):
+The rules (each setting's docstring in ``sl4slam.config`` names the page of ``docs/decisions/``
+that gives its reasons):
 
 - graph design: "keyframe" (VGGT-SLAM 2.0) for the SL(4) group, "submap" for Sim(3);
 - alignment model: "select" for the keyframe graph (the calibration link or the 15-DOF fit, chosen
@@ -21,6 +22,8 @@ The rules (sources in the settings' docstrings, ``sl4slam.config``):
 - retrieval: SALAD when its weights are found locally, else ORB;
 - device: CUDA when available (only looked up when a model runs); ``cuda`` without a GPU is refused;
 - model weights: the model's released weights;
+- model precision: half precision on a CUDA GPU (bf16 where it runs, else fp16), float32 elsewhere
+  (``sl4slam.models.precision.settle_mode``; settled with the device);
 - overlap of the model and the graph work: only with ``tau_interval`` >= 1;
 - simulator: every error magnitude not set explicitly from its profile.
 """
@@ -39,7 +42,7 @@ from typing import Any
 
 from .config import SLAMConfig
 from .errors import UserError
-from .intrinsics import parse_intrinsics
+from .intrinsics import KnownIntrinsics, parse_intrinsics
 from .registry import (FrontendEntry, aligner_entry, aligner_names, frontend_entries, frontend_entry, frontend_names,
                        graph_entry, graph_names, retrieval_entry, retrieval_names)
 from .types import FrontendCapabilities
@@ -95,6 +98,9 @@ class ResolvedConfig:
         device: where the models run ("cpu", "cuda", "cuda:N").
         overlap: whether the next submap's model runs while the graph works on this one.
         notes: why each "auto" became what it is, one line each.
+        intrinsics: the known intrinsics the settings give (numbers or a file), ``None`` otherwise.
+        intrinsics_from_source: the source's own calibration is the known intrinsics
+            (``--intrinsics auto``; read when the source is opened, ``sl4slam.intrinsics.from_source``).
     """
 
     config: SLAMConfig
@@ -110,6 +116,8 @@ class ResolvedConfig:
     device: str
     overlap: bool = False
     notes: tuple[str, ...] = ()
+    intrinsics: KnownIntrinsics | None = None
+    intrinsics_from_source: bool = False
 
     @property
     def needs_ground_truth(self) -> bool:
@@ -132,9 +140,9 @@ class ResolvedConfig:
         return [head] + [f"  {note}" for note in self.notes]
 
 
-def resolve(config: SLAMConfig | ResolvedConfig, capabilities: FrontendCapabilities | None = None,
+def resolve(config: SLAMConfig, capabilities: FrontendCapabilities | None = None,
             probe_device: bool = True) -> ResolvedConfig:
-    """Check ``config`` and settle every "auto" (see the module doc); a resolved config is returned as is.
+    """Check ``config`` and settle every "auto" (see the module doc), once per run, at its entry point.
 
     Args:
         config: the user's settings (not changed).
@@ -145,9 +153,10 @@ def resolve(config: SLAMConfig | ResolvedConfig, capabilities: FrontendCapabilit
 
     Raises:
         UserError: a bad setting, an unknown frontend, or choices that cannot go together.
+        TypeError: ``config`` is not a ``SLAMConfig`` (a ``ResolvedConfig`` is settled already).
     """
-    if isinstance(config, ResolvedConfig):
-        return config
+    if not isinstance(config, SLAMConfig):
+        raise TypeError(f"resolve() takes a SLAMConfig, got {type(config).__name__}")
     config.validate()
     settled = copy.deepcopy(config)
     notes: list[str] = []
@@ -157,8 +166,10 @@ def resolve(config: SLAMConfig | ResolvedConfig, capabilities: FrontendCapabilit
     graph = _graph(settled, group, notes)
     alignment = _alignment(settled, group, graph, notes)
     metric_upgrade = _metric_upgrade(settled, group, graph, alignment, notes)
-    if settled.source.intrinsics.strip():
-        parse_intrinsics(settled.source.intrinsics)  # a bad spec is one line now; "auto" needs the source
+    spec = settled.source.intrinsics.strip()
+    intrinsics_from_source = spec == "auto"
+    known = None if intrinsics_from_source else parse_intrinsics(spec)  # a bad spec is one line now
+    if spec:
         if metric_upgrade:
             notes.append("metric upgrade: off (known intrinsics: the cameras are metric already)")
         metric_upgrade, settled.upgrade.mode = False, "off"
@@ -166,6 +177,8 @@ def resolve(config: SLAMConfig | ResolvedConfig, capabilities: FrontendCapabilit
     retrieval = _retrieval(settled, notes)
     attention = _attention(settled, graph, retrieval, capabilities, notes)
     device = _device(settled, entry, retrieval) if probe_device else settled.device
+    if probe_device and entry.settle_dtype is not None:
+        settled.model.dtype = entry.settle_dtype(settled.model.dtype, device)
     settled.sim = settled.sim.resolved()
     overlap = settled.overlap and (retrieval is RetrievalKind.NONE or settled.retrieval.tau_interval >= 1)
     if settled.overlap and not overlap:
@@ -174,7 +187,7 @@ def resolve(config: SLAMConfig | ResolvedConfig, capabilities: FrontendCapabilit
     if settled.false_loops.rate > 0 and retrieval is RetrievalKind.NONE:
         notes.append("false loops: none are injected (there is no retrieval to propose loops)")
     return ResolvedConfig(settled, entry, capabilities, group, graph, alignment, retrieval, metric_upgrade,
-                          complete_links, attention, device, overlap, tuple(notes))
+                          complete_links, attention, device, overlap, tuple(notes), known, intrinsics_from_source)
 
 
 def _frontend(settled: SLAMConfig, notes: list[str]) -> FrontendEntry:
@@ -240,7 +253,7 @@ def _graph(settled: SLAMConfig, group: Group, notes: list[str]) -> GraphDesign:
     holds = graph_entry(graph.value).groups
     if group.value not in holds:
         others = [name for name in graph_names() if group.value in graph_entry(name).groups]
-        raise UserError(f"--graph {graph.value} needs --backend {' or '.join(holds)} (the {graph.value} graph is "
+        raise UserError(f"--graph (config key backend.graph) {graph.value} needs --backend {' or '.join(holds)} (the {graph.value} graph is "
                         f"{' or '.join(_GROUP_WORDS[g] for g in holds)} graph); "
                         f"use --graph {' or '.join(others)} or auto with --backend {group.value}")
     return graph
@@ -258,7 +271,7 @@ def _alignment(settled: SLAMConfig, group: Group, graph: GraphDesign, notes: lis
                      else f"links: {model} (auto: the {graph.value} graph's in {group.value})")
     alignment = AlignmentModel(settled.alignment.model)
     if group is Group.SIM3 and alignment.group is Group.SL4:
-        raise UserError(f"--alignment {alignment.value} measures projective transforms, which a Sim(3) graph cannot "
+        raise UserError(f"--alignment (config key alignment.model) {alignment.value} measures projective transforms, which a Sim(3) graph cannot "
                         "hold; use --alignment sim3-points or sim3-cameras with --backend sim3")
     return alignment
 
@@ -294,7 +307,7 @@ def _attention(settled: SLAMConfig, graph: GraphDesign, retrieval: RetrievalKind
                capabilities: FrontendCapabilities, notes: list[str]) -> bool:
     setting = settled.loops.verify_attention
     if setting == "on" and not capabilities.scores_pairs:
-        raise UserError(f"--loop-verify-attention on needs image-match ratios, which the {settled.frontend} frontend "
+        raise UserError(f"--loop-verify-attention (config key loops.verify_attention) on needs image-match ratios, which the {settled.frontend} frontend "
                         "does not give; use --loop-verify-attention off or auto")
     if retrieval is RetrievalKind.NONE:
         on = False

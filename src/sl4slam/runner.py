@@ -80,7 +80,7 @@ def prepare_output(out_dir: str | Path, overwrite: bool = False, keep: str | Pat
     return out
 
 
-def run_slam(source_path: "str | Path | FrameSource", out_dir: str | Path, config: SLAMConfig | ResolvedConfig, replay_dir: str | None = None,
+def run_slam(source_path: "str | Path | FrameSource", out_dir: str | Path, config: SLAMConfig, replay_dir: str | None = None,
              progress: bool = True, overwrite: bool = False,
              on_submap: Callable | None = None, view=None, all_frames: bool = False, keep_viewer: bool = False) -> dict:
     """Open ``source_path``, run the pipeline, write every output into ``out_dir``; return the summary.
@@ -158,7 +158,7 @@ def check_before_frames(source, resolved: ResolvedConfig, replay_dir, all_frames
     problem = source_problem(source, resolved.capabilities, resolved.frontend.name, resolved.config.source)
     if problem:
         raise UserError(problem)
-    from_source(source, resolved.config.source.intrinsics)  # a calibration that cannot be used: one line now
+    from_source(source, resolved.intrinsics, resolved.intrinsics_from_source)  # one that cannot be used: one line now
     if resolved.config.false_loops.rate > 0 and not source.has_ground_truth:
         raise UserError(f"--false-loop-rate needs ground-truth poses and depth, which {source.name} has not")
     if replay_dir is None and resolved.frontend.weights is not None:
@@ -222,8 +222,7 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
             write_checkpoint(pipeline.snapshot(), out, resolved, {"source": source.name})
             last_write[0] = time.perf_counter()
 
-    pipeline = SLAMPipeline(resolved, stages.frontend, stages.retrieval, stages.aligner, stages.backend,
-                            on_submap=checkpoint)
+    pipeline = SLAMPipeline(resolved, stages, on_submap=checkpoint)
     if live:
         # the source keeps exactly the frames the pipeline selected as keyframes (loop closures re-read them)
         source.keyframe_counter = lambda: pipeline.selector.num_keyframes

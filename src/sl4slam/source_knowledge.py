@@ -22,7 +22,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .config import SLAMConfig, SourceConfig
+from .io.settings import SourceConfig
 from .errors import UserError
 from .intrinsics import FOCAL_RATIO_WARNING, KnownIntrinsics, focal_ratios, from_source, on_grid
 from .sensor_scale import scaled, sensor_scale
@@ -52,16 +52,17 @@ class SourceKnowledge:
     """The known intrinsics and sensor scale of one run (see the module docstring).
 
     Args:
-        config: the run's settled config (``source`` and ``submap`` sections are read).
+        resolved: the run's resolved config (``sl4slam.resolve.ResolvedConfig``: its intrinsics, and
+            the ``source`` and ``submap`` sections).
         frontend: the run's frontend (its name and capabilities).
         source: the frame source, which says what it knows (``None``: nothing known yet).
     """
 
-    def __init__(self, config: SLAMConfig, frontend: Frontend, source: FrameSource | None = None) -> None:
-        self.config = config
+    def __init__(self, resolved, frontend: Frontend, source: FrameSource | None = None) -> None:
+        self.config = resolved.config
         self.frontend = frontend
-        self.intrinsics: KnownIntrinsics | None = (from_source(source, config.source.intrinsics)
-                                                   if source is not None else None)
+        self.intrinsics: KnownIntrinsics | None = (
+            from_source(source, resolved.intrinsics, resolved.intrinsics_from_source) if source is not None else None)
         self.focal_ratios: list[float] = []  # the model's focal over the known one, per frame
         self.scales_measured: list[float] = []
         self.scales_kept = 0  # submaps that kept their neighbour's scale

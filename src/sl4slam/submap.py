@@ -12,12 +12,51 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import ClassVar
 
 import cv2
 import numpy as np
 
 from .geometry import to_4x4, unproject_depth
+from .section import Section, setting
 from .types import FrameView, SubmapPrediction
+
+
+@dataclass
+class SubmapConfig(Section):
+    """Submap assembly (paper 4.1, 5.1)."""
+
+    section: ClassVar[str] = "submap"
+    flag_prefix: ClassVar[str] = "submap-"
+
+    size: int = setting(16, common=True, check=lambda v: v >= 1, allowed="at least 1")
+    """New keyframes per submap, w. Paper evaluates 8/16/32 (tables use 32); reference CLI: 16."""
+    overlap: int = 2
+    """Frames shared by consecutive submaps: the last ``overlap`` keyframes of a submap open the next
+    one, and the link between the two uses all of them (``sl4slam.alignment.shared``). Each costs one
+    more frame per forward. VGGT-SLAM: 1 (decision: docs/decisions/shared-frames.md)."""
+    w_loop: int = setting(1, flag='--w-loop', check=lambda v: v >= 0, allowed=">= 0")
+    """Loop candidates per submap, each appending its loop frame (paper: 1)."""
+    loop_frames: int = setting(2, flag='--loop-frames',
+                               check=lambda v: v >= 1, allowed="at least 1: the loop frame itself")
+    """Frames of the old submap each loop candidate appends: its loop frame and the keyframes of that
+    submap nearest to it. The loop is then measured like a link over several shared frames
+    (``sl4slam.alignment.shared``). Each costs one more frame per forward in the submaps that
+    propose a loop. VGGT-SLAM: 1 (decision: docs/decisions/shared-frames.md)."""
+    tau_conf: float = setting(25.0, flag='--tau-conf')
+    """Percentile of the submap's confidence below which pixels are dropped (reference code: 25)."""
+    use_point_head: bool = False
+    """Use the frontend's point map instead of unprojecting depth (VGGT offers both)."""
+
+    def validate(self) -> None:
+        super().validate()
+        # the next submap opens with this one's newest keyframes: at most all of them (a small submap
+        # with the default overlap then shares every new keyframe, never an older shared frame again)
+        self._require("overlap", 1 <= self.overlap <= max(self.size, 1),
+                      f"at least 1 and at most the submap size ({self.size}): the shared frames are the newest keyframes "
+                      "of the submap before")
+        # 100 would drop every pixel (an empty map); the percentile is over the whole submap
+        self._require("tau_conf", 0 <= self.tau_conf < 100, "a percentile in [0, 100)")
 
 RANK_LEVELS = 255
 """Confidence ranks are stored as uint8: 0..255 spans the submap's 0..100th percentile."""
@@ -298,8 +337,8 @@ class StoredKeyframe:
         return unproject_depth(self.depth[None].astype(np.float32), self.K[None], self.T_cam_submap[None])[0]
 
     def view(self) -> FrameView:
-        """This keyframe as a :class:`FrameView` of its own submap (float16-rounded depth; see
-        ``benchmarks/bench_robustness.py`` for why that precision suffices for loop alignment)."""
+        """This keyframe as a :class:`FrameView` of its own submap (float16-rounded depth; decision:
+        docs/decisions/keyframe-format.md)."""
         return FrameView(self.points(), self.mask(), self.K, self.T_cam_submap)
 
     @property

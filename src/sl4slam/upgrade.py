@@ -49,14 +49,108 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Mapping
+from typing import ClassVar, Mapping
 
 import numpy as np
 from scipy.optimize import least_squares
 
-from .config import UpgradeConfig
+
 from .errors import UserError
 from .geometry import decompose_projection, normalize_sl4, projection_intrinsics, rq_decomposition
+from .section import Section, setting
+
+
+@dataclass
+class UpgradeConfig(Section):
+    """Projective-to-metric upgrade of the finished map (``sl4slam.upgrade``): self-calibration
+    through the absolute dual quadric (Hartley & Zisserman, Multiple View Geometry, 2nd ed., ch. 19,
+    "H&Z") from zero skew, square pixels, a known principal point and one focal length.
+
+    Residuals are unitless: skew / f, fy / fx - 1, principal-point offset / f (and, for the focal
+    model, log focal ratios), so 0.01 reads "a hundredth of the focal length"."""
+
+    section: ClassVar[str] = "upgrade"
+    builds: ClassVar[str] = "sl4slam.metric_frame:MetricFrame"
+    flag_prefix: ClassVar[str] = "upgrade-"
+
+    mode: str = setting("auto", choices=("auto", "on", "off"), flag='--metric-upgrade')
+    """"on": estimate the upgrade at the end of a run and apply it to every node, pose and map point
+    when it is well conditioned and clearly better; "off": leave the map in the first submap's
+    projective frame; "auto": on where links may be 15-DOF, which make the whole map inherit the
+    first submap's projective distortion (the SL(4) submap graph, and the keyframe graph with
+    "select" links), off for calibration links and for the Sim(3) graph
+    (decision: docs/decisions/metric-upgrade.md)."""
+    focal_model: str = setting("shared", choices=("shared", "varying"))
+    """"shared": one focal length for every keyframe (one physical camera films the video).
+    "varying": each keyframe's focal free (a zoom, or a frontend whose focal wanders), with no
+    smoothness prior: the four other constraints per camera determine the focal (H&Z 19.3)
+    (decision: docs/decisions/metric-upgrade.md)."""
+    focal_weight: float = setting(1.0, advanced=True, check=lambda v: v > 0, allowed="> 0")
+    """Shared model: weight of the focal residual log(f_i / f) against the skew / aspect /
+    principal-point residuals; 1: a focal deviation of 0.01 (relative) counts like a principal
+    point 0.01 focal lengths off."""
+    loss: str = setting("cauchy", choices=("cauchy", "soft_l1", "huber", "arctan", "linear"), advanced=True)
+    """Robust loss of the refinement (scipy.optimize.least_squares): "cauchy", "soft_l1", "huber",
+    "arctan" or "linear" (none) (decision: docs/decisions/metric-upgrade.md)."""
+    loss_scale: float = setting(0.01, advanced=True, check=lambda v: v > 0, allowed="> 0")
+    """Residual (unitless) beyond which the robust loss down-weights, the noise expected of a good
+    camera (decision: docs/decisions/metric-upgrade.md)."""
+    outlier_factor: float = setting(3.0, advanced=True, check=lambda v: v >= 1, allowed=">= 1")
+    """After the robust fit a camera is kept when its residual (RMS of its constraints) is below
+    this many ``loss_scale``s; 3: the usual 3-sigma rule with ``loss_scale`` as the noise."""
+    min_inlier_fraction: float = setting(0.5, advanced=True, check=lambda v: 0 < v <= 1, allowed="in (0, 1]")
+    """Skip when fewer cameras than this fraction are kept: most keyframes must agree."""
+    min_keyframes: int = setting(3, advanced=True, check=lambda v: v >= 3, allowed="at least 3 (H&Z 19.3)")
+    """Fewest keyframes: the linear absolute-dual-quadric estimate with a known principal point,
+    zero skew and unit aspect ratio needs 3 views (H&Z 19.3)."""
+    min_condition: float = setting(1e-3, advanced=True, check=lambda v: 0 <= v < 1, allowed="in [0, 1)")
+    """Skip when the refinement's Jacobian at the solution has smallest / largest singular value
+    below this (plane at infinity in units of the scene depth): pure rotation, pure translation and
+    other critical motions (H&Z 19.9) leave a direction undetermined
+    (decision: docs/decisions/metric-upgrade.md)."""
+    max_uncertainty: float = setting(0.01, advanced=True, check=lambda v: v > 0, allowed="> 0")
+    """Skip when the predicted standard deviation of the upgrade (plane at infinity in units of the
+    scene depth, calibration in units of the focal; from the residuals and the Jacobian) is above
+    this, i.e. a distortion of the map by a hundredth: near-degenerate motion with noisy cameras,
+    e.g. a rotation with a baseline of a hundredth of the scene depth
+    (decision: docs/decisions/metric-upgrade.md)."""
+    max_iterations: int = setting(100, advanced=True, check=lambda v: v >= 1, allowed="at least 1")
+    """Most residual evaluations of each robust refinement (scipy's ``max_nfev``)
+    (decision: docs/decisions/metric-upgrade.md)."""
+    max_residual_ratio: float = setting(0.8, advanced=True, check=lambda v: 0 < v <= 1, allowed="in (0, 1]")
+    """Never make it worse: apply only when the constraint residual after the upgrade is below
+    this fraction of the one before (on the kept cameras), so an already metric map (the residual
+    is noise) is left untouched."""
+    max_residual_after: float = setting(0.015, advanced=True, check=lambda v: v > 0, allowed="> 0")
+    """Never make it worse: when the kept cameras' constraint residual after the upgrade is still
+    above this (1.5 ``loss_scale``s), one transform could not make them metric: the map is not one
+    projective frame. The upgrade is then skipped unless the distortion it removed was clearly
+    larger than that inconsistency (``inconsistent_ratio``), so it does not trade one distortion
+    for another (decision: docs/decisions/metric-upgrade.md)."""
+    inconsistent_ratio: float = setting(0.3, advanced=True, check=lambda v: 0 < v <= 1, allowed="in (0, 1]")
+    """See ``max_residual_after``: above it, apply only when the residual fell below this fraction of
+    the one before (decision: docs/decisions/metric-upgrade.md)."""
+    complete_links: bool = setting(True, advanced=True)
+    """While a run ends with the upgrade (and its graph holds SL(4) links), a fallback link on a
+    planar shared frame, which only its two cameras fix, is completed from the next submap's
+    cameras (``sl4slam.completion``): the perspective bending the link left free is chosen so those
+    cameras are metric in the running upgrade of the map so far, keeping the map one projective
+    frame for the upgrade (decision: docs/decisions/planar-link-completion.md)."""
+    running_keyframes: int = setting(32, advanced=True)
+    """The running upgrade that completes planar links estimates the map's metric frame from at most
+    this many keyframes of the segment (half of them the newest, where the link is, the other half
+    spread evenly over the rest), so its cost stays flat as the map grows. The upgrade's 8 unknowns
+    need 3 cameras (H&Z 19.3). The final upgrade uses every keyframe
+    (decision: docs/decisions/planar-link-completion.md)."""
+    metric_residual: float = setting(0.002, advanced=True, check=lambda v: v >= 0, allowed=">= 0")
+    """Never make it worse: cameras whose constraint residual (skew, aspect and principal-point
+    offset over the focal length) is already below this are metric to within the upgrade's own
+    noise and are left alone (decision: docs/decisions/metric-upgrade.md)."""
+
+    def validate(self) -> None:
+        super().validate()
+        self._require("running_keyframes", self.running_keyframes >= self.min_keyframes,
+                      f"at least --upgrade-min-keyframes ({self.min_keyframes})")
 
 NUM_CALIBRATION = 5
 """Free entries of the upper-triangular ``A`` (``A_33 = 1``)."""

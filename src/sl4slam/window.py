@@ -15,11 +15,11 @@ from typing import Callable
 import numpy as np
 
 from .backend import SubmapFrames
-from .config import SubmapConfig
+
 from .errors import UserError
 from .geometry import to_4x4
 from .loops import LoopEvidence, grey_for_check
-from .submap import confidence_levels, confidence_mask, submap_points
+from .submap import SubmapConfig, confidence_levels, confidence_mask, submap_points
 from .types import Frame, FrameView, LoopCandidate, SubmapPrediction
 
 

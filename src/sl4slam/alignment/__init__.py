@@ -16,27 +16,33 @@
 - :func:`dlt_sl4` / :func:`minimal_sl4_batch`: the least-squares and batched minimal DLT solvers.
 """
 
-from .aligner import CalibrationAligner, HybridAligner, SL4Aligner, Sim3CameraAligner, Sim3PointAligner, make_aligner, shared_pixels
-from .camera_constrained import camera_constrained_sl4
-from .dlt import dlt_design_matrix, dlt_sl4, minimal_sl4_batch, normalize_points
-from .ransac import estimate_sim3, estimate_sl4
-from .sim3 import sim3_from_shared_frame
+import importlib
+from typing import Any
 
-__all__ = [
-    "CalibrationAligner",
-    "HybridAligner",
-    "SL4Aligner",
+_HOMES = {
+    "CalibrationAligner": "aligner",
+    "HybridAligner": "aligner",
+    "SL4Aligner": "aligner",
+    "Sim3CameraAligner": "aligner",
+    "Sim3PointAligner": "aligner",
+    "make_aligner": "aligner",
+    "shared_pixels": "aligner",
+    "camera_constrained_sl4": "camera_constrained",
+    "dlt_design_matrix": "dlt",
+    "dlt_sl4": "dlt",
+    "minimal_sl4_batch": "dlt",
+    "normalize_points": "dlt",
+    "estimate_sim3": "ransac",
+    "estimate_sl4": "ransac",
+    "sim3_from_shared_frame": "sim3",
+}
+"""Where each name lives: the package imports a module only when one of its names is asked for, so
+that its settings (``sl4slam.alignment.settings``) load without the fits."""
 
-    "Sim3CameraAligner",
-    "Sim3PointAligner",
-    "make_aligner",
-    "shared_pixels",
-    "camera_constrained_sl4",
-    "dlt_design_matrix",
-    "dlt_sl4",
-    "estimate_sim3",
-    "estimate_sl4",
-    "minimal_sl4_batch",
-    "normalize_points",
-    "sim3_from_shared_frame",
-]
+__all__ = list(_HOMES)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _HOMES:
+        return getattr(importlib.import_module(f"{__name__}.{_HOMES[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

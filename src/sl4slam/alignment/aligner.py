@@ -32,10 +32,9 @@ from typing import ClassVar, Sequence
 
 import numpy as np
 
-from ..config import AlignmentConfig, SLAMConfig
+from .settings import AlignmentConfig
 from ..edges import is_camera_link
 from ..registry import AlignerEntry, aligner_entry
-from ..resolve import ResolvedConfig, resolve
 from ..types import Aligner, Alignment, FrameView
 from .camera_constrained import camera_constrained_sl4
 from .select import choose_link
@@ -183,7 +182,7 @@ class SL4Aligner(PointAligner):
             return link
         guess = stand_in.H if stand_in is not None else estimate_sim3(X_a, X_b, self.config, seed=seed).H
         constrained = camera_constrained_sl4(X_a, X_b, view_a.camera, view_b.camera, guess, self.config)
-        if self.config.planar_model == "auto":
+        if self.config.planar_model == "by-support":
             link = self.camera_edge(view_a, view_b)
             margin = self.config.planar_support_margin
             if (constrained is None or constrained.inlier_ratio < margin * link.inlier_ratio
@@ -248,10 +247,10 @@ class HybridAligner(SL4Aligner):
     projective distortion; the 15-DOF fit also absorbs smooth depth warps as a projective error,
     which then drifts from link to link. The fit replaces the link only where the points show a
     distortion well beyond that: its median transfer error must be ``hybrid_margin`` times smaller
-    than the link's (benchmarks/bench_keyframe_graph.py). A degenerate or nearly planar frame always
-    gets the link, never the camera-constrained fit (``planar_model`` is not consulted: under smooth
-    depth warps that fit bent the map, benchmarks/results/keyframe_graph.md); the link is then this
-    model's own choice, not a fallback (``extras["degenerate"]`` says why).
+    than the link's. A degenerate or nearly planar frame always gets the link, never the
+    camera-constrained fit (``planar_model`` is not consulted); the link is then this model's own
+    choice, not a fallback (``extras["degenerate"]`` says why). Decisions:
+    docs/decisions/select-link.md, docs/decisions/planar-frames.md.
     ``Alignment.extras["hybrid_ratio"]`` records the ratio.
     """
 
@@ -301,8 +300,10 @@ class SelectAligner(SL4Aligner):
         return choose_link(self._fit, self._link, pairs, seed)
 
 
-def make_aligner(config: ResolvedConfig | SLAMConfig) -> Aligner:
-    """The aligner of a run's settled alignment model (``sl4slam.resolve``: "auto" is the one that
-    fits the graph), built by its catalog entry (``sl4slam.registry``)."""
-    resolved = resolve(config)
+def make_aligner(resolved) -> Aligner:
+    """The aligner of a run's settled alignment model, built by its catalog entry (``sl4slam.registry``).
+
+    Args:
+        resolved: the run's resolved config (``sl4slam.resolve.ResolvedConfig``).
+    """
     return aligner_entry(resolved.alignment.value).build(resolved)

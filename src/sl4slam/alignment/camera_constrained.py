@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config import AlignmentConfig
+from .settings import AlignmentConfig
 from ..geometry import normalize_sl4, sl4_valid
 from ..types import Alignment
 from .common import clean_correspondences, make_alignment

@@ -11,7 +11,7 @@ from typing import Protocol
 
 import numpy as np
 
-from ..config import AlignmentConfig
+from .settings import AlignmentConfig
 from ..types import Alignment, FrameView
 
 class FrameFitter(Protocol):

@@ -30,7 +30,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..config import AlignmentConfig
+from .settings import AlignmentConfig
 from ..geometry import normalize_sl4, umeyama_sim3, umeyama_sim3_batch
 from ..types import Alignment
 from .common import clean_correspondences, make_alignment

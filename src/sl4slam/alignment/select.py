@@ -14,30 +14,20 @@ them but one and judged on the one left out: a distortion of the window, measure
 frames, predicts it; another frame's warp does not. The fit is chosen only where it predicts the
 left-out frames better than the link at ``AlignmentConfig.select_confidence`` (a one-sided paired
 t-test over the left-out frames, each frame one observation: its pixels err together), and by at
-least ``AlignmentConfig.select_min_gain`` (2x). The t-test counts the folds as independent; with two
-shared frames they are not: the fit on the first predicting the second and the fit on the second
-predicting the first are one comparison seen from both sides (log ratios correlated at 0.995), so
-their spread is no measure of noise, and the test alone passed wherever the fit predicted better at
-all: 1.02-1.2x under per-frame errors, where it was no better than the link on the whole (4 of the
-5 simulated runs that took such fits came out better without them). A window's distortion is
-predicted 7-60x better, so the gain separates the two with room on either side. The
-gain found rests on per-frame errors being independent between frames (the simulator draws each
-frame's depth warp and camera error on its own), and a real model whose frames of one window err
-alike would make the link win more often.
+least ``AlignmentConfig.select_min_gain`` times (geometric mean of the left-out error ratios). The
+t-test counts the folds as independent; with two shared frames they are not: the fit on the first
+predicting the second and the fit on the second predicting the first are one comparison seen from
+both sides, so their spread is no measure of noise, and the gain is what separates a window's
+distortion from per-frame errors (decision: docs/decisions/select-link.md).
 With one shared frame nothing is left to judge on, and the link, the model that assumes less, is
 kept.
 
 Degenerate shared frames (flat, or flat against their depth errors: ``SL4Aligner``) have no 15-DOF
 fit to choose: they get what the SL(4) aligner's ``planar_model`` gives them (the link, or the
-camera-constrained fit where it explains nearly every point and far more than the link). That is
-why this choice does not lose on them the way a margin on the fit's residual did: on a plane the
-fit's residual is small whatever its off-plane terms are, so a residual margin chose a fit that
-the plane did not determine; here such a fit is never a candidate, and a nearly planar frame's fit
-must still predict the left-out frames. A flat frame can still judge as the training frame of a
-fold: its camera-constrained fit (points on the plane, cameras for the rest) predicts the other
-frame where the window is distorted, as the fit of any frame does. Counted as a tie instead, one
-flat frame of two kept the calibration link under a strong distortion of the window (TUM fr1/desk,
-one seed: 0.0094 m against 0.0007 m with the vote).
+camera-constrained fit where it explains nearly every point and far more than the link); a nearly
+planar frame's fit must still predict the left-out frames. A flat frame can still judge as the
+training frame of a fold: its camera-constrained fit (points on the plane, cameras for the rest)
+predicts the other frame where the window is distorted, as the fit of any frame does.
 """
 
 from __future__ import annotations

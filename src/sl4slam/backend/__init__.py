@@ -9,21 +9,33 @@ alone. ``sl4slam.backend.evidence`` turns an alignment into the information matr
 
 from __future__ import annotations
 
-from ..config import BackendConfig
-from .interface import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
-from .keyframe import KeyframeBackend
-from .pose_graph import PoseGraph
-from .sim3 import Sim3PoseGraph
-from .sl4 import SL4PoseGraph
-from .submap import Sim3Backend, SL4Backend, SubmapBackend, submap_backend
+import importlib
+from typing import Any
 
-__all__ = ["Backend", "BackendUpdateError", "KeyframeBackend", "PoseGraph", "SL4Backend", "SL4PoseGraph", "Sim3Backend",
-           "Sim3PoseGraph", "SubmapBackend", "SubmapFrames", "WorldEstimate", "make_backend"]
+from .settings import BackendConfig
+
+_HOMES = {"Backend": "interface", "BackendUpdateError": "interface", "SubmapFrames": "interface",
+          "WorldEstimate": "interface", "KeyframeBackend": "keyframe", "PoseGraph": "pose_graph",
+          "Sim3PoseGraph": "sim3", "SL4PoseGraph": "sl4", "Sim3Backend": "submap", "SL4Backend": "submap",
+          "SubmapBackend": "submap", "submap_backend": "submap"}
+"""Where each name lives: the package imports a module only when one of its names is asked for, so
+that its settings (``sl4slam.backend.settings``) load without GTSAM."""
+
+__all__ = ["BackendConfig", "make_backend", *_HOMES]
 
 
-def make_backend(config: BackendConfig, design: str | None = None) -> Backend:
+def __getattr__(name: str) -> Any:
+    if name in _HOMES:
+        return getattr(importlib.import_module(f"{__name__}.{_HOMES[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def make_backend(config: BackendConfig, design: str | None = None) -> Any:
     """The graph design ``design`` ("submap" or "keyframe"; default: ``config.graph``, which must
     then be settled, as in a resolved config) in the group ``config.kind`` ("sl4" or "sim3")."""
+    from .keyframe import KeyframeBackend
+    from .submap import submap_backend
+
     design = design or config.graph
     if design == "keyframe":
         return KeyframeBackend(config)

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config import BackendConfig
+from .settings import BackendConfig
 from ..edges import is_camera_link
 from ..types import Alignment
 
@@ -69,7 +69,7 @@ def edge_information(alignment: Alignment, generators: np.ndarray, config: Backe
     dim = len(generators)
     inflation = config.fallback_sigma_scale**2 if alignment.fallback else 1.0
     support = alignment.support
-    if config.weighting == "fixed" or (config.weighting == "auto" and is_camera_link(alignment)):
+    if config.weighting == "fixed" or (config.weighting == "by-link" and is_camera_link(alignment)):
         return isotropic_information(dim, config.sigma) / inflation
     if support is None or len(support[1]) < 3:
         return isotropic_information(dim, config.max_sigma) / inflation

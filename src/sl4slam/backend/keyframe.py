@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import BackendConfig
+from .settings import BackendConfig
 from ..geometry import normalize_sl4, se3_inverse, to_4x4
 from ..registry import GraphEntry
 from .interface import Backend, BackendUpdateError, SubmapFrames, WorldEstimate

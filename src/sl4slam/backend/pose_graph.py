@@ -42,12 +42,11 @@ solutions differ by ~1e-4 in their entries: beyond that, "converged" has no mean
 
 Revisits. A map that goes round the same places lap after lap, each lap tied to the others by
 loops, is a grid: its Bayes tree cliques widen with every lap, and so does the cost of each loop
-update (3.5-3.9x slower per submap after 17 laps of the synthetic world; benchmarks/results/
-keyframe_graph.md). So iSAM2 takes a loop as a between factor only when its older node is not yet
+update (decision: docs/decisions/isam2.md). So iSAM2 takes a loop as a between factor only when its older node is not yet
 on a cycle that an earlier loop closed; a loop to a place that is (a revisit) reaches iSAM2 as a
 prior on the newer node at the older node's current estimate (the keyframe graph's
 ``BackendConfig.revisit_priors``; the submap graph, a few hundred nodes where the keyframe graph
-has thousands, stays within 1.1-1.2 late / early after 17 laps without it).
+has thousands, does without it).
 iSAM2's graph then stays a chain with one loop per closed stretch and unary factors, whatever the
 laps. Every loop is kept exactly in :meth:`PoseGraph.factor_graph`, which the final
 polish optimizes, so the map a run ends with is the exact graph's optimum.
@@ -63,7 +62,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from ..config import BackendConfig
+from .settings import BackendConfig
 from .interface import BackendUpdateError
 
 def check_matrix(name: str, M: Any) -> np.ndarray:
@@ -374,7 +373,7 @@ class PoseGraph(ABC):
 
         Why: a map that revisits its places lap after lap, every lap tied to the others by loops,
         is a grid whose Bayes tree cliques grow with the number of laps, and with them the cost of
-        every loop update (benchmarks/results/keyframe_graph.md). A place already closed into the
+        every loop update. A place already closed into the
         map has settled; tying a revisit to it as a prior keeps iSAM2's graph a chain with unary
         factors. The first loop over a stretch of the map still enters exactly and corrects it."""
         if not self.revisit_priors:
@@ -580,8 +579,8 @@ class PoseGraph(ABC):
         """Squared Mahalanobis distance of the loop ``H_i_j`` between nodes ``i`` and ``j`` from the
         current estimate, under the two nodes' joint covariance plus the measurement's own
         (``information^-1``; see ``sl4slam.backend.interface.Backend.loop_chi2``). The joint covariance comes from iSAM2's Bayes
-        tree (equal to a batch marginalization of the whole graph to 1e-11, which cost 0.3 s at 4000
-        nodes against 9-30 ms: benchmarks/results/keyframe_graph.md), so call it for loop candidates only.
+        tree (equal to a batch marginalization of the whole graph to 1e-11, and far cheaper; decision:
+        docs/decisions/isam2.md), so call it for loop candidates only.
         A revisit (:meth:`is_revisit`) is tested as iSAM2 would take it: the prior on the newer node
         against that node's marginal, the older held at its estimate."""
         i, j, H_i_j = self._check_loop(i, j, H_i_j)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config import BackendConfig
+from .settings import BackendConfig
 from ..registry import GraphEntry
 from .interface import Backend, SubmapFrames, WorldEstimate
 from .pose_graph import PoseGraph

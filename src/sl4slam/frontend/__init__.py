@@ -17,21 +17,33 @@ so a run imports only the model it uses. A new model adds its line there.
 from __future__ import annotations
 
 import os
+from typing import Any
 
-from ..resolve import ResolvedConfig, resolve
 from ..types import Frontend, FrontendCapabilities
-from .cache import CachingFrontend, ReplayFrontend
+
+
+def __getattr__(name: str) -> Any:
+    if name in ("CachingFrontend", "ReplayFrontend"):  # loaded on first use, like every frontend module
+        from . import cache
+
+        return getattr(cache, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def replay_capabilities(replay_dir: str | os.PathLike) -> FrontendCapabilities:
     """What a recorded frontend cache can give a replay (``resolve(..., capabilities=...)``)."""
+    from .cache import ReplayFrontend
+
     return ReplayFrontend(replay_dir).capabilities
 
 
-def build_frontend(resolved: ResolvedConfig, frontend: Frontend | None = None,
+def build_frontend(resolved, frontend: Frontend | None = None,
                    replay_dir: str | os.PathLike | None = None, cache_dir: str | os.PathLike | None = None) -> Frontend:
     """The run's frontend: ``frontend`` if given, else a replay of ``replay_dir``, else the one the
-    catalog builds; recorded to ``cache_dir`` when given."""
+    catalog builds for the resolved config ``resolved`` (``sl4slam.resolve.ResolvedConfig``);
+    recorded to ``cache_dir`` when given."""
+    from .cache import CachingFrontend, ReplayFrontend
+
     if frontend is None:
         frontend = ReplayFrontend(replay_dir) if replay_dir is not None else resolved.frontend.build(resolved)
     if cache_dir is not None:
@@ -39,12 +51,4 @@ def build_frontend(resolved: ResolvedConfig, frontend: Frontend | None = None,
     return frontend
 
 
-def make_frontend(config, replay_dir: str | os.PathLike | None = None,
-                  cache_dir: str | os.PathLike | None = None) -> Frontend:
-    """The frontend a config names (``SLAMConfig`` or resolved), optionally replayed from or
-    recorded to a cache (:func:`build_frontend`)."""
-    resolved = resolve(config, capabilities=replay_capabilities(replay_dir) if replay_dir is not None else None)
-    return build_frontend(resolved, replay_dir=replay_dir, cache_dir=cache_dir)
-
-
-__all__ = ["build_frontend", "make_frontend", "replay_capabilities", "CachingFrontend", "ReplayFrontend"]
+__all__ = ["build_frontend", "replay_capabilities", "CachingFrontend", "ReplayFrontend"]

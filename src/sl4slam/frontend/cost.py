@@ -2,7 +2,7 @@
 
 A model's work per frame is stored in its registry entry (``FrontendEntry.cpu_work``) as the float32
 matrix-multiply work that takes the same time: GFLOP-equivalents per frame of a window, measured once
-(``benchmarks/bench_cpu_estimate.py``). This machine's float32 matmul speed, measured in under a
+per model. This machine's float32 matmul speed, measured in under a
 second (``matmul_rate``), turns it into seconds here. ``docs/decisions/cpu-estimate.md`` gives the
 measurements and how close the estimate comes.
 """

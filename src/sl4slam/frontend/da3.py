@@ -15,8 +15,8 @@ cameras, for poses; then with those poses (normalised as the authors' API does) 
 mapped onto the grid, through the camera encoder. The second pass's outputs are returned; the cost is
 two forwards.
 
-Precision (``dtype``): "auto" is float32 on a CPU (the authors' API runs fp16 there, 2.4x slower than
-float32 on an AVX2 CPU) and, on CUDA, bf16 where supported else fp16 for the backbone, with the
+Precision (``dtype``): "auto" is float32 on a CPU (the authors' API runs fp16 there; decision:
+docs/decisions/int8-cpu.md) and, on CUDA, bf16 where supported else fp16 for the backbone, with the
 camera modules and the head in float32, as the authors' API.
 
 Memory: the head decodes up to 8 frames at a time (as the released code); with ``max_memory_gb`` the
@@ -45,6 +45,7 @@ from ..models.da3.preprocess import (
     preprocess_images,
 )
 from ..models.da3.weights import resolve_precision
+from ..models.precision import settle_mode
 from ..models.vggt.preprocess import GridTransform
 from ..registry import FrontendEntry
 from ..types import Frame, FrontendCapabilities, SubmapPrediction
@@ -64,8 +65,8 @@ class DA3Frontend:
     Args:
         size: "small", "base", "large", "large-1.1", "giant" or "giant-1.1".
         weights: file or hub id; ``None``: the size's release (``depth-anything/DA3-<SIZE>``).
-        device: "auto", "cpu", "cuda", ...
-        dtype: "auto", "fp32", "bf16" or "fp16" (the backbone's compute precision).
+        device: "cpu", "cuda", ...
+        dtype: "fp32", "bf16" or "fp16" (the backbone's compute precision).
         cameras: "head" (camera decoder) or "rays" (fitted to the ray maps).
         max_memory_gb: plan the head's chunk so a forward fits this budget (0: 8 frames at a time).
         model: an already built model (tests); ``None`` loads ``weights`` on first use.
@@ -76,7 +77,7 @@ class DA3Frontend:
     capabilities = FrontendCapabilities(scores_pairs=False, needs_ground_truth=False, predicts_intrinsics=True,
                                         accepts_intrinsics=True)
 
-    def __init__(self, size: str = "small", weights: str | None = None, device: str = "auto", dtype: str = "auto",
+    def __init__(self, size: str = "small", weights: str | None = None, device: str = "cpu", dtype: str = "fp32",
                  cameras: str = "head", max_memory_gb: float = 0.0, model: torch.nn.Module | None = None,
                  process_res: int = PROCESS_RES) -> None:
         try:
@@ -91,7 +92,7 @@ class DA3Frontend:
         self.weights = weights or self.release.repo_id
         self.device = resolve_device(device)
         self.dtype = dtype
-        self.autocast_dtype = resolve_precision(dtype, self.device)
+        self.autocast_dtype = resolve_precision(dtype)
         self.cameras = cameras
         self.max_memory_gb = float(max_memory_gb)
         self.process_res = int(process_res)
@@ -199,7 +200,7 @@ def registry_entry(size: str):
 
     def build(resolved) -> DA3Frontend:
         model = resolved.config.model
-        return DA3Frontend(size=release.size, weights=None if model.weights == "auto" else model.weights,
+        return DA3Frontend(size=release.size, weights=model.weights,
                            device=resolved.device, dtype=model.dtype, cameras=model.cameras,
                            max_memory_gb=model.max_memory_gb)
 
@@ -210,7 +211,14 @@ def registry_entry(size: str):
                      "frame; takes a known calibration"),
         weights=WEIGHTS_SOURCES[release.size], licence=licence, parameters=parameter_counts()[release.size],
         recognizes=_recognizer(release.architecture), convert=_converter(release.size),
-        cpu_work=CPU_WORK[release.architecture])
+        cpu_work=CPU_WORK[release.architecture], settle_dtype=settle_dtype)
+
+
+def settle_dtype(dtype: str, device: str) -> str:
+    """The concrete precision mode of the ``dtype`` setting (any case) on ``device``."""
+    from ..models.da3.weights import PRECISIONS
+
+    return settle_mode(dtype.lower(), device, PRECISIONS, "Depth Anything 3")
 
 
 CPU_WORK = {"small": 306.0, "base": 722.0, "large": 2152.0, "giant": 5601.0}

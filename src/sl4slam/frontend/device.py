@@ -8,10 +8,8 @@ from ..errors import UserError
 
 
 def resolve_device(device: str) -> torch.device:
-    """"auto" -> CUDA when available, else CPU; otherwise the named device (``cuda`` without a GPU:
-    one line)."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    """The named device ("cpu", "cuda", "cuda:N"; "auto" is settled by ``sl4slam.resolve``); ``cuda``
+    without a GPU: one line."""
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError("--device cuda was requested but no CUDA GPU is available; use --device cpu")
     return torch.device(device)

@@ -19,7 +19,7 @@ image-match ratio is not implemented for π³ (``scores_pairs`` is false): ``mat
 Precision (``dtype``): "auto" is float32 on CPU and, as the authors run it, bf16 autocast on CUDA
 (fp16 before compute capability 8) with float32 weights; the heads always run in float32.
 Attention: the memory-efficient kernel (flash attention; a 17-frame submap at the native resolution
-fits in a few GB on a CPU, ``benchmarks/results/pi3.md``). Memory: the convolutional heads of Pi3X
+fits in a few GB on a CPU; decision: docs/decisions/memory-estimates.md). Memory: the convolutional heads of Pi3X
 decode :data:`HEAD_CHUNK_FRAMES` frames at a time; with ``max_memory_gb`` the chunk is chosen per
 submap from an estimate of the peak (:func:`estimate_peak_bytes`) and a submap that cannot fit is
 refused with the largest size that would.
@@ -51,7 +51,7 @@ from ..models.pi3.preprocess import (
     preprocess_images,
 )
 from ..models.pi3.weights import WEIGHTS_SOURCES
-from ..models.precision import cuda_native_bf16, resolve_mode
+from ..models.precision import cuda_native_bf16, resolve_mode, settle_mode
 from ..types import Frame, FrontendCapabilities, SubmapPrediction
 from .device import resolve_device  # noqa: F401  (part of this module's API)
 
@@ -73,11 +73,16 @@ AUTOCAST_DTYPES: dict[str, torch.dtype | None] = {"fp32": None, "float32": None,
                                                   "float16": torch.float16}
 
 
-def resolve_compute_dtype(dtype: str, device: torch.device) -> torch.dtype | None:
-    """Autocast dtype of the forward (``None``: plain float32). "auto": bf16 on CUDA GPUs of compute
-    capability 8 or more, fp16 on older ones (the authors' choice), float32 on the CPU."""
-    return resolve_mode(dtype, device, AUTOCAST_DTYPES, f"unknown π³ dtype '{dtype}': use auto, fp32, bf16 or fp16",
-                        bf16=cuda_native_bf16)
+def resolve_compute_dtype(dtype: str) -> torch.dtype | None:
+    """Autocast dtype of the forward (``None``: plain float32) for a concrete ``dtype`` ("fp32",
+    "bf16", "fp16"; "auto" is settled before: bf16 on CUDA GPUs of compute capability 8 or more, fp16
+    on older ones, float32 on the CPU, :func:`settle_dtype`)."""
+    return resolve_mode(dtype, AUTOCAST_DTYPES, f"unknown π³ dtype '{dtype}': use fp32, bf16 or fp16")
+
+
+def settle_dtype(dtype: str, device: str) -> str:
+    """The concrete mode of the ``dtype`` setting on ``device`` (``sl4slam.models.precision.settle_mode``)."""
+    return settle_mode(dtype, device, tuple(AUTOCAST_DTYPES), "π³", bf16=cuda_native_bf16)
 
 
 class Pi3Frontend:
@@ -87,8 +92,8 @@ class Pi3Frontend:
         variant: "pi3" or "pi3x" (also the frontend's ``name``).
         weights: local file / folder or hub id; ``None``: the variant's hub id
             (``yyfz233/Pi3``, ``yyfz233/Pi3X``).
-        device: "auto", "cpu", "cuda", "cuda:1" ...
-        dtype: "auto", "fp32", "bf16" or "fp16" (autocast dtype; weights stay float32).
+        device: "cpu", "cuda", "cuda:1" ...
+        dtype: "fp32", "bf16" or "fp16" (autocast dtype; weights stay float32).
         max_memory_gb: plan each submap's forward to fit (0: no planning).
         model: an already built :class:`~sl4slam.models.pi3.Pi3` / :class:`~sl4slam.models.pi3.Pi3X`
             (e.g. random weights in tests); ``None``: ``weights`` are loaded by :meth:`prepare` or
@@ -98,7 +103,7 @@ class Pi3Frontend:
     requires_ground_truth = False
     capabilities = CAPABILITIES["pi3"]
 
-    def __init__(self, variant: str = "pi3", weights: str | None = None, device: str = "auto", dtype: str = "auto",
+    def __init__(self, variant: str = "pi3", weights: str | None = None, device: str = "cpu", dtype: str = "fp32",
                  max_memory_gb: float = 0.0, model: torch.nn.Module | None = None) -> None:
         if variant not in VARIANTS:
             raise UserError(f"unknown π³ variant '{variant}': use one of {', '.join(VARIANTS)}")
@@ -109,7 +114,7 @@ class Pi3Frontend:
         self.capabilities = CAPABILITIES[variant]
         self.weights = weights or WEIGHTS_SOURCES[variant].repo_id
         self.device = resolve_device(device)
-        self.compute_dtype = resolve_compute_dtype(dtype, self.device)
+        self.compute_dtype = resolve_compute_dtype(dtype)
         self.max_memory_gb = float(max_memory_gb)
         self.budget = PIXEL_BUDGET
         self.last_transforms: list[ResizeTransform] = []
@@ -222,7 +227,7 @@ def registry_entry(variant: str):
 
     def build(resolved) -> Pi3Frontend:
         model = resolved.config.model
-        return Pi3Frontend(variant=variant, weights=None if model.weights == "auto" else model.weights,
+        return Pi3Frontend(variant=variant, weights=model.weights,
                            device=resolved.device, dtype=model.dtype, max_memory_gb=model.max_memory_gb)
 
     def convert(src: str, dst: str, dtype: str):
@@ -240,7 +245,7 @@ def registry_entry(variant: str):
     return FrontendEntry(name=variant, build=build, capabilities=CAPABILITIES[variant], description=description,
                          weights=WEIGHTS_SOURCES[variant], licence="CC BY-NC 4.0 (non-commercial)",
                          parameters=PARAMETERS[variant], recognizes=recognizes, convert=convert,
-                         cpu_work=CPU_WORK[variant])
+                         cpu_work=CPU_WORK[variant], settle_dtype=settle_dtype)
 
 
 CPU_WORK = {"pi3": 4374.0, "pi3x": 4374.0}

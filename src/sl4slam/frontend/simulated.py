@@ -183,7 +183,7 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 from scipy.special import ndtr
 
-from ..config import SimulatorConfig
+from .settings import SimulatorConfig
 from ..errors import UserError
 from ..geometry import (
     apply_transform,

@@ -28,7 +28,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..config import ModelConfig
+from .settings import ModelConfig
 from ..errors import UserError
 from ..models.vggt.attention import MatchRatioProbe
 from ..models.vggt.memory import (
@@ -39,7 +39,8 @@ from ..models.vggt.memory import (
 )
 from ..models.vggt.model import VGGT
 from ..models.vggt.pose_encoding import pose_encoding_to_extri_intri
-from ..models.vggt.precision import Precision, apply_precision, resolve_precision
+from ..models.precision import settle_mode
+from ..models.vggt.precision import MODES, Precision, apply_precision, resolve_precision
 from ..models.vggt.preprocess import GridTransform, preprocess_images, to_uint8_rgb
 from ..registry import FrontendEntry
 from ..types import Frame, FrontendCapabilities, SubmapPrediction
@@ -52,7 +53,7 @@ _GRID_SIDE = 518
 
 
 def resolve_mode(dtype: str, device: torch.device) -> Precision:
-    """The precision mode of ``--dtype`` on ``device`` (one line on bad input)."""
+    """The precision of the concrete mode ``dtype`` on ``device`` (one line on bad input)."""
     try:
         return resolve_precision(dtype, device)
     except ValueError as exc:
@@ -79,13 +80,14 @@ class VGGTFrontend:
     """Frontend backed by our VGGT implementation.
 
     Args:
-        config: dtype, preprocessing mode, memory budget and weights (file or hub id).
+        config: the settled ``[model]`` section: dtype (a concrete mode), preprocessing mode, memory
+            budget and weights (file or hub id).
         model: an already built :class:`VGGT` (e.g. with random weights in tests); when ``None``
             the weights named by ``config.weights`` are loaded on the first call.
         with_points: also return the point head's map (``SubmapPrediction.points``).
         match_scores: the loop check will ask for image-match ratios (``config.match_layer`` must
             then exist in the model, checked when the weights load).
-        device: "auto" (CUDA when available), "cpu", "cuda" or "cuda:N".
+        device: "cpu", "cuda" or "cuda:N".
         submap_frames: the most frames a submap holds (new keyframes, the shared and the loop
             frames); on a GPU without ``--max-memory``, a submap that cannot fit the GPU's memory is
             refused when the weights load, before any frame is read.
@@ -95,7 +97,7 @@ class VGGTFrontend:
     capabilities = FrontendCapabilities(scores_pairs=True, predicts_intrinsics=True)
 
     def __init__(self, config: ModelConfig, model: VGGT | None = None, with_points: bool = False,
-                 match_scores: bool = False, device: str = "auto", submap_frames: int = 0) -> None:
+                 match_scores: bool = False, device: str = "cpu", submap_frames: int = 0) -> None:
         if config.preprocess_mode not in ("crop", "pad"):
             raise UserError(f"unknown VGGT preprocessing mode '{config.preprocess_mode}': use crop or pad")
         self.config = config
@@ -140,12 +142,10 @@ class VGGTFrontend:
     def model(self) -> VGGT:
         """The model, loaded from ``config.weights`` on first use."""
         if self._model is None:
-            from ..models.hub import VGGT_WEIGHTS
             from ..models.vggt.weights import load_vggt
 
             # The checkpoint's own dtype (memory-mapped): each weight is converted once, in _prepare.
-            weights = VGGT_WEIGHTS.repo_id if self.config.weights == "auto" else self.config.weights
-            model = load_vggt(weights, device="cpu", dtype=None)
+            model = load_vggt(self.config.weights, device="cpu", dtype=None)
             if not self.with_points:
                 model.point_head = None  # its weights are never read
             self._model = self._prepare(model)
@@ -225,6 +225,14 @@ class VGGTFrontend:
         return prediction
 
 
+def settle_dtype(dtype: str, device: str) -> str:
+    """The concrete precision mode of the ``dtype`` setting on ``device`` ("int8": the CPU only)."""
+    mode = settle_mode(dtype, device, MODES, "VGGT")
+    if mode == "int8" and torch.device(device).type != "cpu":
+        raise UserError("--dtype int8 runs on the CPU only; use bf16 on a GPU")
+    return mode
+
+
 def registry_entry() -> FrontendEntry:
     """VGGT-1B in the frontend registry (``sl4slam.registry``)."""
     from ..models.hub import VGGT_WEIGHTS
@@ -241,7 +249,7 @@ def registry_entry() -> FrontendEntry:
         weights=VGGT_WEIGHTS,
         licence="CC BY-NC 4.0 (facebook/VGGT-1B; facebook/VGGT-1B-Commercial is under the VGGT License, commercial use allowed)",
         parameters=VGGT_PARAMETERS, recognizes=lambda keys: "aggregator.camera_token" in keys,
-        convert=_convert, cpu_work=CPU_WORK)
+        convert=_convert, cpu_work=CPU_WORK, settle_dtype=settle_dtype)
 
 
 def _convert(src: str, dst: str, dtype: str):

@@ -55,7 +55,7 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
-    from ..config import SourceConfig
+    from .settings import SourceConfig
 
 _KINDS = "an image folder, a video file, a TUM RGB-D / 7-Scenes sequence folder, a camera index or a stream URL"
 

@@ -1,18 +1,18 @@
-"""Precision modes: what "auto" means on a device, and a model's table of what each mode means.
+"""Precision modes: the mode "auto" stands for on a device, and a model's table of what each mode means.
 
-A model's ``dtype`` setting names a mode ("auto", "fp32", "bf16", "fp16"; VGGT also "int8"); the
-model decides what a mode means for it (a :class:`torch.dtype` to autocast to, a storage and compute
-pair, ...) in a table that :func:`resolve_mode` looks the mode up in. "auto" is the same rule for
-every model: half precision on a CUDA GPU (bf16 where the GPU runs it, else fp16), float32
-elsewhere; only the test of "runs bf16" can be a model's own (:func:`cuda_bf16_supported` or
-:func:`cuda_native_bf16`).
+A model's ``dtype`` setting names a mode ("auto", "fp32", "bf16", "fp16"; VGGT also "int8").
+:func:`settle_mode` turns "auto" into a concrete mode once, in the resolve step (``sl4slam.resolve``):
+half precision on a CUDA GPU (bf16 where the GPU runs it, else fp16), float32 elsewhere; only the
+test of "runs bf16" can be a model's own (:func:`cuda_bf16_supported` or :func:`cuda_native_bf16`).
+The model decides what a concrete mode means for it (a :class:`torch.dtype` to autocast to, a
+storage and compute pair, ...) in a table that :func:`resolve_mode` looks the mode up in.
 
 :func:`weight_dtype` reads the dtype that weights are stored in (loading and converting checkpoints).
 """
 
 from __future__ import annotations
 
-from typing import Callable, Mapping, TypeVar
+from typing import Callable, Mapping, Sequence, TypeVar
 
 import torch
 
@@ -65,25 +65,40 @@ def auto_mode(device: torch.device, bf16: Callable[[torch.device], bool] = cuda_
     return "bf16" if bf16(device) else "fp16"
 
 
-def resolve_mode(mode: str, device: torch.device, table: Mapping[str, T], unknown: str,
-                 bf16: Callable[[torch.device], bool] = cuda_bf16_supported) -> T:
-    """What ``mode`` means for a model on ``device``: ``table[mode]``, "auto" replaced by
-    :func:`auto_mode` first.
+def settle_mode(mode: str, device: str | torch.device, modes: Sequence[str], model: str,
+                bf16: Callable[[torch.device], bool] = cuda_bf16_supported) -> str:
+    """The concrete mode of a ``dtype`` setting on ``device``: "auto" becomes :func:`auto_mode`,
+    any other mode is checked against ``modes``.
 
     Args:
-        mode: "auto" or a key of ``table`` (compared as given: a model lowers the case itself if it
-            accepts any case).
-        device: where the model runs.
-        table: the model's modes (e.g. ``{"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}``);
-            must hold "fp32", "bf16" and "fp16" for "auto".
+        mode: the setting ("auto" or one of ``modes``).
+        device: where the model runs ("cpu", "cuda", "cuda:N").
+        modes: the model's concrete modes (e.g. ``("fp32", "bf16", "fp16")``).
+        model: the model's name, for the message.
+        bf16: the model's test of bf16 on a CUDA device.
+
+    Raises:
+        PrecisionError: a mode that is not "auto" and not in ``modes`` (one line naming them).
+    """
+    if mode == "auto":
+        return auto_mode(torch.device(device), bf16)
+    if mode not in modes:
+        raise PrecisionError(f"unknown {model} dtype {mode!r}: use auto, " + ", ".join(modes))
+    return mode
+
+
+def resolve_mode(mode: str, table: Mapping[str, T], unknown: str) -> T:
+    """What the concrete ``mode`` (settled by :func:`settle_mode`) means for a model: ``table[mode]``.
+
+    Args:
+        mode: a key of ``table`` (compared as given: a model lowers the case itself if it accepts
+            any case).
+        table: the model's modes (e.g. ``{"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}``).
         unknown: the message for a mode that is not in ``table`` (one line naming the modes).
-        bf16: the test of bf16 on a CUDA device, for "auto".
 
     Raises:
         PrecisionError: ``mode`` is not in ``table``.
     """
-    if mode == "auto":
-        mode = auto_mode(device, bf16)
     if mode not in table:
         raise PrecisionError(unknown)
     return table[mode]

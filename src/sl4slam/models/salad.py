@@ -350,7 +350,7 @@ def load_salad(
         weights: path of ``dino_salad.ckpt`` (plain or Lightning form, or ``.safetensors``);
             ``None`` uses ``<cache>/dino_salad.ckpt`` (see :func:`salad_cache_dir`), downloading
             :data:`SALAD_WEIGHTS_URL` there on first use when ``download`` is true.
-        device: "cpu", "cuda", "auto" (CUDA when available) or a ``torch.device``.
+        device: "cpu", "cuda", "cuda:N" or a ``torch.device``.
 
     Raises:
         MissingWeightsError: the file is absent and cannot be downloaded (the message says where
@@ -392,11 +392,4 @@ def load_salad(
             f"{len(unexpected)} unexpected {unexpected[:3]}, {len(wrong)} wrong shapes {wrong[:3]}"
         )
     model.load_state_dict({k: v.float() for k, v in state_dict.items()}, strict=True, assign=True)
-    return model.to(resolve_device(device)).eval()
-
-
-def resolve_device(device: str | torch.device) -> torch.device:
-    """``"auto"`` -> CUDA when available, else CPU; other values as given."""
-    if isinstance(device, str) and device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
+    return model.to(torch.device(device)).eval()

@@ -12,18 +12,19 @@ A result folder (format version 3, ``summary.json["format"]``):
 | ``trajectory.txt`` | keyframe poses ``T_world_cam``, TUM format |
 | ``trajectory_gt.txt`` | ground truth of the same keyframes, when known |
 | ``map.ply`` | coloured, confidence-filtered dense map |
-| ``keyframes/NNNNNN.npz`` | per keyframe (NNNNNN its frame index), ``output.keyframes``: "compact" (default) the run's own float16 depth in the keyframe's local frame with that frame's camera and projective map into the world (the same world points, recomputed), ``mask``, half-resolution uint8 confidence percentile, colours as one JPEG, deflated (0.22 MB at 518x392 on the TUM excerpt, 17x smaller); "full" ``points_world`` (H, W, 3) float32, ``mask`` (H, W), ``confidence`` (H, W) float16 percentile in its submap, ``colors`` (H, W, 3) uint8, uncompressed (3.66 MB); both with ``K``, ``T_world_cam``, ``timestamp``, ``frame_index``, ``submap_id``, ``segment``; "none": no folder. ``sl4slam.result.reading`` documents both layouts and reads either into the same world points |
+| ``keyframes/NNNNNN.npz`` | per keyframe (NNNNNN its frame index), ``output.keyframes``: "compact" (default) the run's own float16 depth in the keyframe's local frame with that frame's camera and projective map into the world (the same world points, recomputed), ``mask``, half-resolution uint8 confidence percentile, colours as one JPEG, deflated (decision: docs/decisions/keyframe-format.md); "full" ``points_world`` (H, W, 3) float32, ``mask`` (H, W), ``confidence`` (H, W) float16 percentile in its submap, ``colors`` (H, W, 3) uint8, uncompressed (3.66 MB); both with ``K``, ``T_world_cam``, ``timestamp``, ``frame_index``, ``submap_id``, ``segment``; "none": no folder. ``sl4slam.result.reading`` documents both layouts and reads either into the same world points |
 | ``summary.json`` | status, settings, counts, every edge (loops with their verdicts), segments, timings, memory, ATE |
 | ``trajectory.png`` | top view of the trajectory (and ground truth) |
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import resource
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -33,9 +34,6 @@ from ..atomic import atomic_path, atomic_write_bytes, atomic_write_npz
 from ..submap import StoredKeyframe
 from . import SLAMResult
 from .reading import KEYFRAME_LAYOUTS, encode_colors, encode_depth, to_world
-
-if TYPE_CHECKING:
-    from ..resolve import ResolvedConfig
 
 RESULT_FORMAT = {"name": "sl4slam-result", "version": 3}
 
@@ -113,6 +111,22 @@ def _write_compact_keyframe(directory: Path, keyframe: StoredKeyframe, X: np.nda
         colors_jpeg=encode_colors(colors), K_local=np.asarray(keyframe.K, np.float64),
         T_cam_local=np.asarray(keyframe.T_cam_submap, np.float64), H_world_local=np.asarray(H_world_local, np.float64),
         **_identity(keyframe, result, index)), compressed=True)
+
+
+def write_keyframe_file(layout: str, directory: Path, keyframe: StoredKeyframe, X: np.ndarray, valid: np.ndarray,
+                        colors: np.ndarray, result: SLAMResult, index: int, H_world_local: np.ndarray) -> None:
+    """Write one keyframe file, ``directory/NNNNNN.npz``, in ``layout`` ("compact" or "full"), as a run does.
+
+    Args:
+        keyframe: the stored keyframe; ``index`` its position in ``result.keyframes``.
+        X, valid: its world points and their mask (:func:`keyframe_world_points` with ``H_world_local``).
+        colors: its colours (``result.keyframe_colors``).
+        H_world_local: the map from its submap to the world that gave ``X``.
+    """
+    if layout not in KEYFRAME_LAYOUTS:
+        raise ValueError(f"keyframe layout must be 'compact' or 'full', got {layout!r}")
+    write = _write_compact_keyframe if layout == "compact" else _write_keyframe
+    write(directory, keyframe, X, valid, colors, result, index, H_world_local)
 
 
 def voxel_downsample(xyz: np.ndarray, rgb: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
@@ -252,20 +266,16 @@ def summarize(result: SLAMResult, config_dict: dict, ate_result: ATEResult | Non
     return summary
 
 
-def _settings(config) -> tuple["ResolvedConfig", dict]:
-    """The resolved config of a run (given or resolved here) and what the summary records of it."""
-    from ..config import config_to_dict
-    from ..resolve import resolve
-
-    resolved = resolve(config)
-    return resolved, {"config": config_to_dict(resolved.config), "resolved": resolved.choices(),
+def _settings(resolved) -> tuple[Any, dict]:
+    """The resolved config of a run (``sl4slam.resolve.ResolvedConfig``) and what the summary records of it."""
+    return resolved, {"config": dataclasses.asdict(resolved.config), "resolved": resolved.choices(),
                       "graph": {"group": resolved.group.value, "design": resolved.graph.value,
                                 "alignment": resolved.alignment.value}}
 
 
 def write_checkpoint(result: SLAMResult, out_dir: Path, config, extra: dict | None = None) -> dict:
     """``trajectory.txt`` and ``summary.json`` of the current state (cheap; called during a run).
-    ``config``: the run's resolved config (``sl4slam.resolve``; a ``SLAMConfig`` is resolved here)."""
+    ``config``: the run's resolved config (``sl4slam.resolve.ResolvedConfig``)."""
     from ..io import write_tum_trajectory
 
     out_dir = Path(out_dir)
@@ -281,7 +291,7 @@ def write_outputs(result: SLAMResult, out_dir: Path, config, source_name: str = 
                   status: str = "complete", extra: dict | None = None) -> dict:
     """Write ``trajectory.txt`` (and ``trajectory_gt.txt``), ``map.ply``, ``keyframes/``,
     ``summary.json``, ``trajectory.png``. Returns the summary dict. ``config``: the run's resolved
-    config (a ``SLAMConfig`` is resolved here).
+    config (``sl4slam.resolve.ResolvedConfig``).
 
     Raises ``UserError`` when a file cannot be written (the message names it).
     """

@@ -25,9 +25,8 @@ and ``T_world_cam (4, 4)`` (the decomposed world camera), ``timestamp``, ``frame
   submap). Uncompressed ``.npz``: 18 bytes per pixel, 3.66 MB per keyframe at 518x392.
 - **compact** (``--keyframes compact``, the default): what the run itself kept of the keyframe,
   from which it computed the full layout's points, so no point is lost or moved
-  (:data:`COMPACT_POINT_TOLERANCE`; 0 measured); only the colours are lossy (JPEG). At 518x392
-  (``benchmarks/results/keyframe_format.md``): 0.215 MB per keyframe on the TUM excerpt, 17x
-  smaller than the full layout, and 0.271 MB (13.5x) on the synthetic world:
+  (:data:`COMPACT_POINT_TOLERANCE`); only the colours are lossy (JPEG; decision:
+  docs/decisions/keyframe-format.md):
 
   - ``depth_bytes (B, H, W)`` uint8: the keyframe's depth in its local (submap) frame, float16
     (``B = 2``; float32 when ``B = 4``), exactly as the run stored it where ``mask`` is true (a
@@ -78,11 +77,8 @@ KEYFRAMES_OPTION = "--keyframes compact"
 KEYFRAME_LAYOUTS = ("compact", "full")
 """The layouts of a keyframe file (``output.keyframes`` adds "none": no files)."""
 JPEG_QUALITY = 85
-"""Quality of a compact keyframe's colours (4:4:4, no chroma subsampling, progressive). At 518x392
-on the TUM excerpt: 50 kB, a mean absolute error of 2.3 levels of 255 (99th percentile 13, max 52);
-on the synthetic world 2.7 (p99 17). Quality 90 costs 27 % more bytes for a mean error of 2.0;
-4:2:0 chroma subsampling saves 11-14 % against quality 90 but errs up to 93-124 levels at colour
-edges (``benchmarks/results/keyframe_format.md``)."""
+"""Quality of a compact keyframe's colours (4:4:4, no chroma subsampling, progressive; decision:
+docs/decisions/keyframe-format.md)."""
 COMPACT_POINT_TOLERANCE = 1e-6
 """Largest distance between a compact keyframe's world point and the full layout's, relative to
 the point's depth along the keyframe's camera axis. Both are computed by the same float32 and
@@ -147,8 +143,8 @@ class KeyframeRecord:
 
     def load(self) -> KeyframeData:
         """Read the dense arrays (either layout gives 3.7 MB of arrays at 518x392; a compact file
-        is inflated, its points recomputed and its JPEG decoded: 37 ms of CPU against 3 ms for a
-        full file in the page cache, ``benchmarks/results/keyframe_format.md``)."""
+        is inflated, its points recomputed and its JPEG decoded, which costs more CPU than a full
+        file; decision: docs/decisions/keyframe-format.md)."""
         try:
             with np.load(self.path) as data:
                 if "depth_bytes" in data.files:
@@ -164,9 +160,8 @@ class KeyframeRecord:
 def encode_depth(depth: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """``(H, W)`` float16 (or float32) depth -> ``(B, H, W)`` uint8 planes (lossless where ``mask``;
     the coding is in the module docstring). Pixels outside ``mask`` repeat their row's previous
-    valid depth, so that the row differences there are zero: deflate then packs the planes in
-    0.66x the bytes of the raw float16 depth (TUM excerpt and synthetic world at 518x392,
-    ``benchmarks/results/keyframe_format.md``)."""
+    valid depth, so that the row differences there are zero and deflate packs the planes tightly
+    (decision: docs/decisions/keyframe-format.md)."""
     depth = np.ascontiguousarray(depth)
     count = depth.dtype.itemsize
     if depth.ndim != 2 or depth.dtype.kind != "f" or count not in (2, 4):

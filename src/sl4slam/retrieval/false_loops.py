@@ -22,7 +22,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from ..config import FalseLoopConfig
+from .settings import FalseLoopConfig
 from ..errors import UserError
 from ..geometry import se3_inverse, unproject_depth
 from ..types import Frame, LoopCandidate, Retrieval

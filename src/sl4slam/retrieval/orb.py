@@ -44,7 +44,7 @@ import cv2
 import numpy as np
 import scipy.sparse
 
-from ..config import RetrievalConfig
+from .settings import RetrievalConfig
 from ..errors import UserError
 from ..registry import RetrievalEntry
 from ..types import Frame, LoopCandidate
@@ -174,6 +174,11 @@ class OrbRetrieval:
     def __len__(self) -> int:
         """Number of stored keyframes."""
         return len(self._frame_indices)
+
+    def forget_query_features(self) -> None:
+        """Drop the features kept from the latest query, so that the next query or add extracts its
+        frames' features again (e.g. to time a query with its feature extraction, as the pipeline pays it)."""
+        self._pending.clear()
 
     # ----------------------------------------------------------------------------------- features
 

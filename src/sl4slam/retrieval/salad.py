@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..config import RetrievalConfig
+from .settings import RetrievalConfig
 from ..registry import RetrievalEntry
 from ..types import Frame, LoopCandidate
 
@@ -194,7 +194,7 @@ class SaladRetrieval:
     Args:
         config: ``kind``, ``tau_interval``, ``tau_desc``, ``salad_weights`` and
             ``salad_image_size`` are used.
-        device: "cpu", "cuda" or "auto" for the model and the index.
+        device: "cpu", "cuda" or "cuda:N" for the model and the index (settled by ``sl4slam.resolve``).
         model: a ready :class:`~sl4slam.models.salad.SaladModel` (tests, shared models);
             ``None`` loads ``config.salad_weights`` (or the cached / downloaded release file).
     """
@@ -202,10 +202,10 @@ class SaladRetrieval:
     name = "salad"
 
     def __init__(self, config: RetrievalConfig, device: str | torch.device = "cpu", model: torch.nn.Module | None = None) -> None:
-        from ..models.salad import load_salad, resolve_device
+        from ..models.salad import load_salad
 
         self.config = config
-        self.device = resolve_device(device)
+        self.device = torch.device(device)
         self.model = model if model is not None else load_salad(config.salad_weights, self.device)
         self.model.to(self.device).eval()
         self.image_size = int(config.salad_image_size)

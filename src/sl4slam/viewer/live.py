@@ -72,7 +72,7 @@ class LiveViewer:
     Example::
 
         viewer = LiveViewer(ViewerSettings(port=8080))
-        pipeline = SLAMPipeline(config, frontend, retrieval, on_submap=viewer.on_submap)
+        pipeline = SLAMPipeline.from_config(config, frontend, retrieval, on_submap=viewer.on_submap)
         result = pipeline.run(source)
         viewer.finish(result)
     """

@@ -127,6 +127,12 @@ def _mask_count(path: Path) -> tuple[int, bool]:
         return int(np.count_nonzero(data["mask"])), "confidence" in data.files or "confidence_rank" in data.files
 
 
+def mask_count(path: Path) -> tuple[int, bool]:
+    """Confident pixels of a keyframe file, and whether it holds a per-pixel confidence: what
+    :func:`decimation` and :func:`expected_totals` take for each keyframe."""
+    return _mask_count(path)
+
+
 def _submap_cloud(submap_id: int, records, fraction: float, settings: ViewerSettings):
     points, colors, confidence, thumbs = [], [], [], {}
     has_confidence = True

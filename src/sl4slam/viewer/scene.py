@@ -21,8 +21,8 @@ class ViewerSettings:
     """Viewer options (the command line's ``sl4slam view`` flags).
 
     Attributes:
-        point_budget: most points sent to the browser in all; 1M keeps WebGL interaction smooth on
-            integrated graphics (our measurement, benchmarks/results/viewer.md), 2M+ needs a GPU.
+        point_budget: most points sent to the browser in all (decision:
+            docs/decisions/viewer-point-budget.md).
         point_size: initial point size in world units (viser's ``point_size``: half the side of
             the square drawn); 0 derives it from the map's own point spacing
             (:func:`auto_point_size`), so that neighbouring points overlap at any map scale.
@@ -260,9 +260,7 @@ def auto_point_size(spacing: float | None, fallback: float) -> float:
     past the centres of its nearest neighbours, so neighbouring points overlap; on a surface
     sampled at random (a decimated map has density ``ln 2 / (pi d^2)`` for that median) such
     squares cover ``1 - exp(-9 ln 2 / pi) = 86 %`` of it seen face-on, more seen at an angle
-    (``1.0 * spacing`` covers 59 %: the surfaces look dotted). The rule follows the map at any
-    scale and density; the previous one, the trajectory's extent / 500, ignored the map, so a map
-    larger or sparser than the trajectory was a haze of specks.
+    (decision: docs/decisions/viewer-point-budget.md).
     """
     if spacing is None or not np.isfinite(spacing) or spacing <= 0:
         return float(fallback)

@@ -15,10 +15,8 @@ The estimate adds the tensors alive at the peak, each counted from its shape (S 
 * the depth and confidence of every frame, and on a CPU the interpreter and libraries
   (:data:`CPU_RUNTIME_BYTES`).
 
-The multipliers were set from the peak resident sizes of 17-frame forwards at 504x378 (head chunk 8,
-float32, 2 threads; ``benchmarks/bench_da3.py --timing``, ``benchmarks/results/da3.md``) and rounded
-up: the head phase is the peak there, and the estimate lies 9-18 % above each size's measured peak
-(Small 1.55 vs 1.37 GiB, Base 2.83 vs 2.50, Large 5.34 vs 4.54, Giant 9.04 vs 8.29).
+The multipliers were set from measured peaks and rounded up, so the estimate lies above them
+(decision: docs/decisions/memory-estimates.md).
 """
 
 from __future__ import annotations

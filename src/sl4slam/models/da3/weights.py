@@ -48,7 +48,7 @@ CONFIG_METADATA_KEY = "da3_config"
 CHECKPOINT_PREFIX = "model."
 CONFIG_FILENAME = "config.json"
 WEIGHTS_FILENAME = "model.safetensors"
-PRECISIONS = ("auto", "fp32", "bf16", "fp16")
+PRECISIONS = ("fp32", "bf16", "fp16")
 #: Autocast dtype of the backbone for each mode (``None``: float32, no autocast).
 AUTOCAST_DTYPES: dict[str, torch.dtype | None] = {"fp32": None, "float32": None, "bf16": torch.bfloat16,
                                                   "fp16": torch.float16}
@@ -242,18 +242,17 @@ def load_state_dict_into(model: DepthAnything3, state_dict: dict[str, torch.Tens
     loading.load_state_dict_into(model, kept, "Depth Anything 3", assign=assign)
 
 
-def resolve_precision(dtype: str | torch.dtype | None, device: torch.device) -> torch.dtype | None:
-    """Autocast dtype of the backbone for ``dtype`` ("auto", "fp32", "bf16", "fp16") on ``device``;
-    ``None`` for float32. "auto": float32 on CPU (the authors' API runs fp16 there, 2.4x slower than
-    float32 on an AVX2 CPU), bf16 on CUDA where supported, else fp16 (as the authors' API)."""
+def resolve_precision(dtype: str | torch.dtype | None) -> torch.dtype | None:
+    """Autocast dtype of the backbone for ``dtype`` ("fp32", "bf16", "fp16"; ``None``: float32);
+    ``None`` for float32. "auto" is settled before (``sl4slam.models.precision.settle_mode``)."""
     if isinstance(dtype, torch.dtype):
         return None if dtype == torch.float32 else dtype
-    return resolve_mode((dtype or "auto").lower(), device, AUTOCAST_DTYPES,
+    return resolve_mode((dtype or "fp32").lower(), AUTOCAST_DTYPES,
                         f"unknown Depth Anything 3 dtype {dtype!r}: use {', '.join(PRECISIONS)}")
 
 
 def load_da3(weights: str | None = None, size: str = "small", device: torch.device | str = "cpu",
-             dtype: str | torch.dtype | None = "auto", config: DA3Config | None = None,
+             dtype: str | torch.dtype | None = "fp32", config: DA3Config | None = None,
              cache_dir: str | Path | None = None, local_files_only: bool | None = None) -> DepthAnything3:
     """Build a Depth Anything 3 model from a checkpoint, in eval mode, with one copy of the weights.
 
@@ -285,7 +284,7 @@ def load_da3(weights: str | None = None, size: str = "small", device: torch.devi
     del state_dict
     device = torch.device(device)
     ready_for_inference(model, device, torch.float32)
-    model.autocast_dtype = resolve_precision(dtype, device)
+    model.autocast_dtype = resolve_precision(dtype)
     logger.info("loaded %s weights from %s", source.what, path)
     return model
 

@@ -13,8 +13,8 @@ cross-attention, pose injection) ends in one call, :func:`attend`, which runs on
   table (PyTorch's CPU flash kernel works on blocks of queries and keys, with masks too); where
   neither applies, the exact math kernel on blocks of :data:`QUERY_CHUNK_BYTES` of table at a time.
   Its outputs differ from the reference kernel's by float rounding only (the summation order of
-  the softmax); ``tests/test_pi3_model.py`` states the tolerance and ``benchmarks/results/pi3.md``
-  the full-size figures.
+  the softmax); ``tests/test_pi3_model.py`` states the tolerance (decision:
+  docs/decisions/memory-estimates.md).
 
 Tensors are ``(B, heads, N, head_dim)``; masks are boolean, broadcastable to ``(B, heads, N, M)``,
 ``True`` where a query may attend to a key.

@@ -4,8 +4,8 @@ head chunk that fits a budget (:mod:`sl4slam.models.memory`).
 The estimate adds the weights, the transformer activations (linear in the frame count: flash
 attention holds no table; :data:`TOKEN_BYTES_PER_CHANNEL` bytes per token and channel), one chunk of
 Pi3X's convolutional heads (:data:`CONV_HEAD_BYTES_PER_PIXEL` per output pixel of a frame) and the
-outputs (:data:`OUTPUT_BYTES_PER_PIXEL` per pixel of every frame). The constants were fitted to the
-full-size measurements in ``benchmarks/results/pi3.md``.
+outputs (:data:`OUTPUT_BYTES_PER_PIXEL` per pixel of every frame). The constants were fitted to
+full-size measurements (decision: docs/decisions/memory-estimates.md).
 """
 
 from __future__ import annotations

@@ -13,10 +13,8 @@ The estimate adds up the tensors that are alive at the peak, each counted from i
   about ``HEAD_MAPS`` such maps; the chunk's float32 copy of its kept tokens;
 * on CPU the interpreter and libraries (``CPU_RUNTIME_BYTES``).
 
-The multipliers and the runtime are set from measurements (``benchmarks/bench_vggt.py`` prints
-the estimate beside the measured peak: CPU resident size for S = 1 ... 16 in fp32, bf16 and int8,
-CUDA allocated memory for S = 1 ... 100 in bf16; ``benchmarks/results/vggt.md``) and rounded up:
-the estimate was above every measured peak, by 1-30 %.
+The multipliers and the runtime are set from measured peaks and rounded up, so the estimate lies
+above them (decision: docs/decisions/memory-estimates.md).
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ Modes (``VGGTConfig.dtype``):
 - ``bf16`` / ``fp16``: aggregator weights stored in that dtype (halving the largest part of the
   model) and its compute under autocast; the heads stay float32, as in the released model.
   Fast on GPUs; on CPUs without native bfloat16 instructions (AVX2-only) it is several times
-  slower than float32 and only saves memory (see ``benchmarks/results/vggt.md``).
+  slower than float32 and only saves memory (decision: docs/decisions/int8-cpu.md).
 - ``int8``: CPU only. Every ``nn.Linear`` of the aggregator (DINOv2 encoder and the 48
   frame/global blocks: about 90 % of its multiply-adds at one frame, less as global attention
   grows with the frame count) gets int8 weights, quantized per output
@@ -58,15 +58,13 @@ PRECISIONS: dict[str, Precision] = {
 
 
 def resolve_precision(mode: str, device: torch.device) -> Precision:
-    """``mode`` ("auto" or one of :data:`MODES`) on ``device`` -> :class:`Precision`.
-
-    "auto": bf16 on CUDA GPUs that support it (else fp16), float32 elsewhere
-    (:func:`sl4slam.models.precision.auto_mode`).
+    """``mode`` (one of :data:`MODES`; "auto" is settled before, ``sl4slam.models.precision.settle_mode``)
+    on ``device`` -> :class:`Precision`.
 
     Raises:
         PrecisionError (a ``ValueError``): unknown mode, or int8 on a non-CPU device.
     """
-    precision = resolve_mode(mode, device, PRECISIONS, f"unknown VGGT dtype '{mode}': use auto, " + ", ".join(MODES))
+    precision = resolve_mode(mode, PRECISIONS, f"unknown VGGT dtype '{mode}': use " + ", ".join(MODES))
     if precision.mode == "int8" and device.type != "cpu":
         raise PrecisionError("--dtype int8 runs on the CPU only; use bf16 on a GPU")
     return precision

@@ -1,0 +1,147 @@
+"""Synthetic sequences rendered once and reused by every benchmark, and replays of a sequence.
+
+:func:`synthetic_world` names a rendering by its parameters (size, frames, seed, layout) and keeps it
+in ``benchmarks/out/worlds/``: the first benchmark that asks renders it, the others read it.
+:class:`LapSource` replays a looping sequence lap after lap (long runs from a short rendering).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+from pathlib import Path
+from typing import Iterator
+
+from .places import OUT
+
+WORLDS = OUT / "worlds"
+"""Where :func:`synthetic_world` keeps its renderings."""
+LAYOUTS = ("tum", "7scenes")
+
+
+def world_name(width: int, height: int, frames: int = 600, seed: int = 0, layout: str = "tum") -> str:
+    """The cache folder name of a rendering: ``synthetic_320x240``, with ``_<frames>f``, ``_seed<seed>``
+    and ``_7scenes`` added where they differ from 600 frames, seed 0 and the TUM layout."""
+    name = f"synthetic_{int(width)}x{int(height)}"
+    if int(frames) != 600:
+        name += f"_{int(frames)}f"
+    if int(seed) != 0:
+        name += f"_seed{int(seed)}"
+    if layout != "tum":
+        name += f"_{layout}"
+    return name
+
+
+def _matches(folder: Path, width: int, height: int, frames: int, seed: int, layout: str) -> bool:
+    """Whether ``folder`` holds a complete rendering with exactly these parameters."""
+    try:
+        metadata = json.loads((folder / "synthetic.json").read_text())
+    except (OSError, ValueError):
+        return False
+    wanted = {"num_frames": int(frames), "width": int(width), "height": int(height), "seed": int(seed)}
+    if any(metadata.get(key) != value for key, value in wanted.items()):
+        return False
+    return (metadata.get("layout") == "7scenes") == (layout == "7scenes")
+
+
+@contextlib.contextmanager
+def _locked(folder: Path) -> Iterator[None]:
+    """Hold an exclusive lock next to ``folder`` so that two processes do not render it at once."""
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    with open(folder.parent / f".{folder.name}.lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def synthetic_world(width: int = 320, height: int = 240, frames: int = 600, seed: int = 0, *, layout: str = "tum",
+                    folder: str | Path | None = None) -> Path:
+    """The synthetic world ``seed`` rendered along its looping path, written once and reused.
+
+    Args:
+        width, height: image size in pixels.
+        frames: frames along the path (the last pose equals the first).
+        seed: world and path seed.
+        layout: "tum" (a TUM RGB-D folder, :func:`sl4slam.synthetic.write_synthetic_sequence`) or
+            "7scenes" (a 7-Scenes sequence folder, :func:`sl4slam.synthetic.write_seven_scenes_sequence`).
+        folder: where the rendering lives; default ``benchmarks/out/worlds/<world_name(...)>``.
+
+    Returns:
+        The folder. A folder whose ``synthetic.json`` records these parameters is returned as it is;
+        anything else there is replaced by a fresh rendering (written aside and renamed into place).
+    """
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
+    folder = Path(folder) if folder is not None else WORLDS / world_name(width, height, frames, seed, layout)
+    if _matches(folder, width, height, frames, seed, layout):
+        return folder
+    from sl4slam.synthetic import write_seven_scenes_sequence, write_synthetic_sequence
+
+    write = write_seven_scenes_sequence if layout == "7scenes" else write_synthetic_sequence
+    with _locked(folder):
+        if not _matches(folder, width, height, frames, seed, layout):  # another process may have just written it
+            write(folder, num_frames=frames, width=width, height=height, seed=seed, overwrite=True)
+    return folder
+
+
+class LapSource:
+    """A looping sequence replayed lap after lap (its path ends where it starts), as one long source.
+
+    Args:
+        base: the frame source of one lap (``sl4slam.io.open_source``).
+        laps: how many laps the source holds.
+        preload: decode every frame of the lap once, up front, so that a replay does not time image
+            decoding.
+
+    Frame ``i`` is frame ``i % len(base)`` of the lap with index ``i`` and timestamp ``i / 30`` s.
+    """
+
+    def __init__(self, base, laps: int, preload: bool = False) -> None:
+        self.base = base
+        self.laps = laps
+        self.name = f"{base.name} x{laps} laps"
+        self.skipped: list[str] = []
+        self._frames = [base.get(i) for i in range(len(base))] if preload else None
+
+    @property
+    def has_ground_truth(self) -> bool:
+        """Whether the lap has ground-truth poses."""
+        return self.base.has_ground_truth
+
+    def __len__(self) -> int:
+        return len(self.base) * self.laps
+
+    def get(self, index: int):
+        """Frame ``index`` of the replay (an :class:`sl4slam.types.Frame`)."""
+        from sl4slam.types import Frame
+
+        lap_index = index % len(self.base)
+        frame = self._frames[lap_index] if self._frames is not None else self.base.get(lap_index)
+        return Frame(index=index, timestamp=index / 30.0, rgb=frame.rgb, depth=frame.depth,
+                     T_world_cam=frame.T_world_cam, K=frame.K, path=frame.path)
+
+    def __iter__(self):
+        return (self.get(i) for i in range(len(self)))
+
+
+RANDOM_FRAME_HW = (480, 640)
+"""Height and width of :func:`random_frames`."""
+
+
+def random_frames(count: int, seed: int) -> list:
+    """``count`` seeded 640x480 uint8 RGB frames of smooth ramps plus noise, shifting from frame to
+    frame (some structure for a model's reference-view choice; the cost of a forward does not depend
+    on the content)."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    height, width = RANDOM_FRAME_HW
+    ys, xs = np.mgrid[0:height, 0:width]
+    frames = []
+    for index in range(count):
+        base = np.stack([xs // 3 + 9 * index, ys // 2, (xs + ys) // 5 + 17 * index], axis=-1) % 256
+        frames.append(np.clip(base + rng.integers(-25, 26, base.shape), 0, 255).astype(np.uint8))
+    return frames
