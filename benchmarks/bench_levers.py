@@ -15,6 +15,14 @@ single-threaded: the runs are spread over processes instead. ``--cost`` times tw
 runs side by side instead (each seed's pair at once, nothing else running):
 
     python benchmarks/bench_levers.py --cost --worlds desk --profiles vggt --variants baseline,defaults --seeds 3
+
+``--suite HALF`` runs the variants over the development suite's sequences instead
+(:mod:`sl4slam.synthetic.suite`: ``tune``, ``validate`` or ``all``; ``--sequences`` picks some by
+name, ``--suite-frames N`` renders the synthetic ones at N frames for a quick run) and writes the
+per-sequence ratios (variant / baseline ATE), with each half's median, worst and wins (ratio < 1),
+into ``benchmarks/results/suite.md``; runs accumulate in ``benchmarks/out/levers/suite_runs.jsonl``:
+
+    python benchmarks/bench_levers.py --suite tune --profiles vggt --variants baseline,defaults --seeds 3
 """
 
 from __future__ import annotations
@@ -28,6 +36,8 @@ import argparse  # noqa: E402
 import datetime  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -124,10 +134,15 @@ def make_config(profile: str, variant: str, seed: int):
 
 def one_run(world: str, profile: str, variant: str, seed: int) -> dict:
     run = run_sequence(make_config(profile, variant, seed), world_path(world))
+    return {"world": world, **_measured(run, profile, variant, seed)}
+
+
+def _measured(run, profile: str, variant: str, seed: int) -> dict:
+    """What a grid row records of a finished run (ATE, loops, links, cost)."""
     result = run.result
     loops = run.loops()
     models = [e.model for e in result.edges if e.kind == "odometry" and e.accepted]
-    return {"world": world, "profile": profile, "variant": variant, "seed": seed, "ate": run.ate(),
+    return {"profile": profile, "variant": variant, "seed": seed, "ate": run.ate(),
             "ate_se3": run.ate(correct_scale=False), "scale": run.ate_result().scale,
             "keyframes": len(result.keyframes),
             "frames": result.stats["frames"], "submaps": result.stats["submaps"], "loops": loops["accepted"],
@@ -359,6 +374,218 @@ def cost_lines() -> list[str]:
     return lines + [""]
 
 
+# ------------------------------------------------------------------ the development suite
+
+SUITE_RUNS = WORK / "suite_runs.jsonl"
+SUITE_COMMANDS = WORK / "suite_commands.txt"
+"""The commands whose runs are in :data:`SUITE_RUNS`, one a line."""
+SUITE_START, SUITE_END = "<!-- section:levers -->", "<!-- /section:levers -->"
+
+
+def one_suite_run(sequence: str, frames: int | None, profile: str, variant: str, seed: int) -> dict:
+    """One run of a variant on a sequence of the suite (its synthetic ones at ``frames`` frames when
+    given); a run that raises is a row with its error, not the end of the grid."""
+    from harness.worlds import suite_sequence
+    from sl4slam.synthetic.suite import get_sequence
+
+    entry = get_sequence(sequence)
+    folder = suite_sequence(sequence, frames=frames)
+    key = {"sequence": sequence, "split": entry.split, "length": None if entry.real else int(frames or entry.frames),
+           "path": _path_digest(folder), "profile": profile, "variant": variant, "seed": seed,
+           "date": str(datetime.date.today())}
+    start = time.perf_counter()
+    try:
+        run = run_sequence(make_config(profile, variant, seed), folder)
+        return {**key, **_measured(run, profile, variant, seed)}
+    except Exception as exc:  # a finding of the suite: which variant fails where
+        return {**key, "ate": None, "error": f"{type(exc).__name__}: {' '.join(str(exc).split())[:160]}",
+                "seconds": time.perf_counter() - start}
+
+
+def _path_digest(folder: Path) -> str | None:
+    """The camera path's digest a synthetic sequence's folder records (None for a real sequence): a
+    cached run counts only for the rendering it ran on."""
+    try:
+        return json.loads((folder / "synthetic.json").read_text())["style"]["path_sha256"]
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def load_suite_runs(current: bool = False) -> list[dict]:
+    """The suite's runs so far; with ``current``, of each sequence and length only those on its latest
+    rendering (the path digest of the last row recorded for it)."""
+    rows = [json.loads(line) for line in SUITE_RUNS.read_text().splitlines() if line.strip()] if SUITE_RUNS.is_file() else []
+    if not current:
+        return rows
+    latest = {(r["sequence"], r["length"]): r.get("path") for r in rows}
+    return [r for r in rows if r.get("path") == latest[(r["sequence"], r["length"])]]
+
+
+def _suite_key(row: dict) -> tuple:
+    return row["sequence"], row["length"], row.get("path"), row["profile"], row["variant"], row["seed"]
+
+
+def run_suite(split: str, names: list[str] | None, frames: int | None, profiles: list[str], variants: list[str],
+              seeds: list[int], parallel: dict) -> None:
+    """Every variant x profile x seed on the chosen sequences of the suite, each run once and cached."""
+    from harness.worlds import suite_sequence
+    from sl4slam.synthetic.suite import suite_sequences
+
+    chosen = suite_sequences(None if split == "all" else split, names)
+    sequences = []
+    for entry in chosen:
+        if entry.real and not suite_sequence(entry.name).is_dir():
+            print(f"{entry.name}: not here ({suite_sequence(entry.name)}), skipped", flush=True)
+            continue
+        folder = suite_sequence(entry.name, frames=frames)  # rendered once, before the workers start
+        sequences.append((entry, _path_digest(folder)))
+    done = {_suite_key(r) for r in load_suite_runs()}
+    todo = [(e.name, frames, p, v, s) for e, path in sequences for p in profiles for s in seeds for v in variants
+            if (e.name, None if e.real else int(frames or e.frames), path, p, v, s) not in done]
+    print(f"{len(todo)} suite runs to do ({len(done)} cached)", flush=True)
+    WORK.mkdir(parents=True, exist_ok=True)
+    with open(SUITE_RUNS, "a") as log:
+
+        def record(index: int, row) -> None:
+            if isinstance(row, BaseException):
+                print(f"{todo[index]}: FAILED {type(row).__name__}: {row}", flush=True)
+                return
+            log.write(json.dumps(row) + "\n")
+            log.flush()
+            outcome = f"ATE {row['ate']:.4f} m" if row.get("ate") is not None else f"failed: {row['error']}"
+            print(f"{todo[index]}: {outcome}, {row['seconds']:.0f} s", flush=True)
+
+        run_all(one_suite_run, todo, on_result=record, raise_errors=False, **parallel)
+
+
+def suite_ratios(runs: list[dict], profile: str, variant: str) -> dict[tuple, list]:
+    """Per sequence (name, rendered length) of a profile: the per-seed ratios ``variant / baseline`` ATE on the
+    same frames (``None`` for a seed where the variant failed and the baseline did not)."""
+    base = {(r["sequence"], r["length"], r["seed"]): r.get("ate") for r in runs
+            if r["profile"] == profile and r["variant"] == "baseline"}
+    ratios: dict[tuple, list] = {}
+    for r in runs:
+        if r["profile"] != profile or r["variant"] != variant:
+            continue
+        reference = base.get((r["sequence"], r["length"], r["seed"]))
+        if reference is None:
+            continue
+        ratios.setdefault((r["sequence"], r["length"]), []).append(
+            r["ate"] / reference if r.get("ate") is not None else None)
+    return ratios
+
+
+def _half_summary(values: list) -> tuple[str, str, str]:
+    """Median, worst and wins (ratio < 1) of per-sequence ratios (None: the variant failed there)."""
+    numbers = [v for v in values if v is not None]
+    failed = len(values) - len(numbers)
+    if not values:
+        return "-", "-", "-"
+    median = f"{np.median(numbers):.2f}" if numbers else "-"
+    worst = "failed" if failed else f"{max(numbers):.2f}"
+    return median, worst, f"{sum(v < 1.0 for v in numbers)}/{len(values)}"
+
+
+def projected_seconds(runs: list[dict]) -> tuple[float, float, int, float, int] | None:
+    """The time one variant, seed and profile would take over the whole suite, from the runs made at
+    a sequence's own length: their median seconds per keyframe times the suite's keyframes, and per
+    frame times its frames (as ``bench_suite.py`` counted them, ``benchmarks/out/suite/properties.json``).
+
+    Returns:
+        ``(seconds by keyframes, seconds per keyframe, keyframes, seconds by frames, frames)``, or
+        None without those runs or counts.
+    """
+    from harness.worlds import SUITE_OUT
+    from sl4slam.synthetic.suite import SUITE, get_sequence
+
+    counts_file = SUITE_OUT / "properties.json"
+    if not counts_file.is_file():
+        return None
+    counts = json.loads(counts_file.read_text())
+    measured = [counts[e.name] for e in SUITE if isinstance(counts.get(e.name), dict) and "keyframes" in counts[e.name]]
+    keyframes, frames = sum(c["keyframes"] for c in measured), sum(c["frames"] for c in measured)
+    full = [r for r in runs if r.get("ate") is not None and r.get("keyframes")
+            and (r["length"] is None or r["length"] == get_sequence(r["sequence"]).frames)]
+    if not full or not keyframes:
+        return None
+    per_keyframe = float(np.median([r["seconds"] / r["keyframes"] for r in full]))
+    per_frame = float(np.median([r["seconds"] / r["frames"] for r in full]))
+    return per_keyframe * keyframes, per_keyframe, keyframes, per_frame * frames, frames
+
+
+def suite_report(out: Path) -> None:
+    """The levers section of ``benchmarks/results/suite.md``: per-sequence ratios to the baseline and
+    each half's median, worst and wins."""
+    from harness import cpu_model, replace_section, table
+    from sl4slam.synthetic.suite import SUITE
+
+    runs = load_suite_runs(current=True)
+    if not runs:
+        return
+    order = {entry.name: index for index, entry in enumerate(SUITE)}
+    commands = SUITE_COMMANDS.read_text().splitlines() if SUITE_COMMANDS.is_file() else []
+    lines = [SUITE_START, "## Accuracy levers on the development suite (simulated frontend, loops on)", "",
+             f"Machine: {cpu_model()}, {os.cpu_count()} cores; runs dated {min(r['date'] for r in runs)} to "
+             f"{max(r['date'] for r in runs)}. Commands: {'; '.join(f'`{c}`' for c in commands) or '-'}. "
+             "Each cell: the median over seeds of the per-seed ratio variant / baseline ATE RMSE (Sim(3)-aligned, "
+             "keyframes) on the same simulated frames; the baseline column is its median ATE in metres. Per half: the "
+             "median of the per-sequence ratios, the worst (largest; \"failed\" when a run of the variant raised) and "
+             "the wins (ratio < 1) over the sequences. Choose on the tune half only; the validate half is reported.", ""]
+    for profile in PROFILES:
+        rows = [r for r in runs if r["profile"] == profile]
+        if not rows:
+            continue
+        variants = [v for v in VARIANTS if v != "baseline" and any(r["variant"] == v for r in rows)]
+        keys = sorted({(r["sequence"], r["length"]) for r in rows}, key=lambda k: (order.get(k[0], 1e9), k[1] or 0))
+        per_variant = {v: suite_ratios(rows, profile, v) for v in variants}
+        seeds = sorted({r["seed"] for r in rows})
+        body = []
+        for half in ("tune", "validate"):
+            half_keys = [k for k in keys if any(r["sequence"] == k[0] and r["split"] == half for r in rows)]
+            for key in half_keys:
+                base = [r.get("ate") for r in rows
+                        if (r["sequence"], r["length"]) == key and r["variant"] == "baseline" and r.get("ate") is not None]
+                cells = []
+                for v in variants:
+                    ratios = per_variant[v].get(key, [])
+                    numbers = [x for x in ratios if x is not None]
+                    cells.append("-" if not ratios else ("failed" if not numbers else f"{np.median(numbers):.2f}"))
+                body.append([key[0], half, key[1] or "all", f"{np.median(base):.4f}" if base else "failed", *cells])
+            for label, pick in (("median", 0), ("worst", 1), ("wins", 2)):
+                cells = []
+                for v in variants:
+                    values = []
+                    for key in half_keys:
+                        ratios = per_variant[v].get(key, [])
+                        numbers = [x for x in ratios if x is not None]
+                        if ratios:
+                            values.append(float(np.median(numbers)) if numbers else None)
+                    cells.append(_half_summary(values)[pick])
+                body.append([f"**{half}: {label}**", half, "", "", *cells])
+        lines += [f"**{profile} profile** ({PROFILES[profile][2]}; seeds {', '.join(map(str, seeds))})", "",
+                  *table(["sequence", "half", "frames", "baseline ATE m", *[f"{v} / baseline" for v in variants]], body),
+                  ""]
+    failures = [r for r in runs if r.get("error")]
+    if failures:
+        lines += ["Runs that raised: " + "; ".join(f"{r['sequence']} {r['variant']} seed {r['seed']}: {r['error']}"
+                                                   for r in failures) + ".", ""]
+    seconds = [r["seconds"] / r["frames"] for r in runs if r.get("ate") is not None and r.get("frames")]
+    if seconds:
+        lines += [f"Run time: {1000 * np.median(seconds):.1f} ms per frame (median over the runs above, wall, one "
+                  "worker, under whatever load they ran).", ""]
+    projection = projected_seconds(runs)
+    if projection:
+        by_keyframes, per_keyframe, keyframes, by_frames, frames = projection
+        low, high = sorted((by_keyframes, by_frames))
+        lines += [f"A full run, every sequence of the suite at its own length, from the runs at a sequence's own "
+                  f"length: {keyframes} keyframes x {per_keyframe:.3f} s per keyframe = {by_keyframes / 60:.0f} min, "
+                  f"or {frames} frames x {1000 * by_frames / frames:.1f} ms per frame = {by_frames / 60:.0f} min, per "
+                  f"variant, seed and profile on one worker; the levers' usual grid (5 variants, 5 seeds, 3 profiles): "
+                  f"{75 * low / 3600 / 2:.1f}-{75 * high / 3600 / 2:.1f} h on two workers.", ""]
+    lines.append(SUITE_END)
+    replace_section(out, SUITE_START, SUITE_END, lines, ["# Development suite", ""])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--worlds", default="synthetic,desk")
@@ -370,8 +597,25 @@ def main() -> None:
     parser.add_argument("--cost", action="store_true",
                         help="time two variants side by side (first world and profile) instead of the grid")
     parser.add_argument("--out", type=Path, default=result_file("levers"))
+    parser.add_argument("--suite", choices=["tune", "validate", "all"],
+                        help="run on the development suite's sequences of this half instead of --worlds")
+    parser.add_argument("--sequences", help="with --suite: only these sequences (comma-separated names)")
+    parser.add_argument("--suite-frames", type=int, help="with --suite: render the synthetic sequences at this length")
+    parser.add_argument("--suite-report", action="store_true", help="only write the suite report from the runs there are")
     args = parser.parse_args()
     seeds = list(range(int(args.seeds))) if "," not in args.seeds else [int(s) for s in args.seeds.split(",")]
+    if args.suite or args.suite_report:
+        if args.suite:
+            run_suite(args.suite, args.sequences.split(",") if args.sequences else None, args.suite_frames,
+                      args.profiles.split(","), args.variants.split(","), seeds, parallel_options(args, "--workers"))
+        if args.suite:
+            command = "python benchmarks/bench_levers.py " + " ".join(sys.argv[1:])
+            known = SUITE_COMMANDS.read_text().splitlines() if SUITE_COMMANDS.is_file() else []
+            if command not in known:
+                WORK.mkdir(parents=True, exist_ok=True)
+                SUITE_COMMANDS.write_text("\n".join([*known, command]) + "\n")
+        suite_report(result_file("suite"))
+        return
     if args.cost:
         run_cost(args.worlds.split(",")[0], args.profiles.split(",")[0], args.variants.split(",")[:2], seeds)
     elif not args.report:

@@ -26,12 +26,25 @@ from harness import LapSource, make_pipeline, result_file, simulated_config, syn
 STAGES = ("retrieval", "points", "alignment", "loops", "backend", "store")
 
 
+def resident_mib() -> float:
+    """The process's resident memory now, MiB (``VmRSS``; the peak where /proc is missing)."""
+    try:
+        for line in open("/proc/self/status", encoding="ascii"):
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--submaps", type=int, default=300)
     parser.add_argument("--retrieval", default="orb")
     parser.add_argument("--perspective", type=float, default=0.1)
     parser.add_argument("--overlap", type=int, default=1, help="shared frames between submaps (the recorded figures: 1)")
+    parser.add_argument("--keyframes-in-ram", type=int, default=None,
+                        help="submap.keyframes_in_ram (default: the setting's default; 0: every keyframe in RAM)")
     parser.add_argument("--out", default=str(result_file("pipeline")))
     args = parser.parse_args()
     from sl4slam.io import open_source
@@ -41,11 +54,13 @@ def main() -> None:
         "backend.graph": "submap",  # the graph the recorded figures were measured on
         "submap.overlap": args.overlap,  # ... with one shared frame (the frames per forward set the cost)
         "overlap": False,  # one submap after the other: each submap's stages timed on their own
+        **({"submap.keyframes_in_ram": args.keyframes_in_ram} if args.keyframes_in_ram is not None else {}),
     })
     # the lap preloaded, so the benchmark does not time PNG decoding
     source = LapSource(open_source(str(synthetic_world(518, 294))), laps=10_000, preload=True)
     pipeline = make_pipeline(config)
     keyframe_seconds: list[float] = []  # frames whose feed ran no submap: keyframe selection
+    rss_trace: list[tuple[int, float]] = []  # (keyframes stored, resident MiB) every 10 submaps
     pipeline.start(source, progress=False)
     start = time.perf_counter()
     for frame in source:
@@ -57,7 +72,9 @@ def main() -> None:
             continue
         done = pipeline.num_submaps
         if done % 10 == 0:
-            print(f"submap {done}: {time.perf_counter() - start:.0f} s, loops {pipeline.num_loops}", flush=True)
+            rss_trace.append((len(pipeline.keyframes), resident_mib()))
+            print(f"submap {done}: {time.perf_counter() - start:.0f} s, loops {pipeline.num_loops}, "
+                  f"RSS {rss_trace[-1][1]:.0f} MiB", flush=True)
         if done >= args.submaps:
             break
     pipeline.stop_requested = True  # the keyframes still waiting make no last submap
@@ -87,6 +104,12 @@ def main() -> None:
                  f"{np.median(totals[plain_late]) * 1000:.1f} |") if len(plain_early) and len(plain_late) else ""
     loop_backend = [s.get("backend", 0.0) * 1000 for s, n in zip(per_submap, pipeline.ledger.submap_loops) if n]
     stored = sum(k.nbytes for k in pipeline.keyframes) / len(pipeline.keyframes)
+    store = pipeline.keyframe_store
+    in_ram = store.ram_bytes() / len(pipeline.keyframes)
+    on_disk = (sum(p.stat().st_size for p in store.folder.glob("*.npz")) / store.spilled) if store.spilled else 0.0
+    half_trace = rss_trace[len(rss_trace) // 2:]
+    growth = (np.polyfit([k for k, _ in half_trace], [m for _, m in half_trace], 1)[0] * 1024 * 1024
+              if len(half_trace) >= 2 else float("nan"))
     H, W = pipeline.keyframes[0].shape
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     lines = [
@@ -125,6 +148,13 @@ def main() -> None:
         "",
         f"Memory kept per keyframe: {stored / 1e6:.3f} MB (float16 depth, bit-packed mask, half-resolution uint8 confidence rank, camera; no colours); "
         f"process peak RSS {rss:.0f} MiB after {len(pipeline.keyframes)} keyframes.",
+        "",
+        f"Keyframes with their arrays in RAM: "
+        f"{f'the newest {config.submap.keyframes_in_ram}' if config.submap.keyframes_in_ram else 'all'} "
+        f"(`submap.keyframes_in_ram`); {store.spilled} spilled to files. Keyframe arrays held in RAM: "
+        f"{in_ram:.0f} bytes per keyframe on average over the run; on disk {on_disk / 1e6:.3f} MB per spilled "
+        f"keyframe. Resident memory grew by {growth / 1e3:.1f} kB per keyframe over the second half of the run "
+        f"(a line through RSS against keyframes, sampled every 10 submaps).",
         "",
     ]
     write_report(args.out, lines)

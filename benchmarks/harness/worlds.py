@@ -2,7 +2,10 @@
 
 :func:`synthetic_world` names a rendering by its parameters (size, frames, seed, layout) and keeps it
 in ``benchmarks/out/worlds/``: the first benchmark that asks renders it, the others read it.
-:class:`LapSource` replays a looping sequence lap after lap (long runs from a short rendering).
+:func:`suite_sequence` does the same for a sequence of the development suite
+(:mod:`sl4slam.synthetic.suite`, kept in ``benchmarks/out/suite/``) and finds its real ones in the
+shared data. :class:`LapSource` replays a looping sequence lap after lap (long runs from a short
+rendering).
 """
 
 from __future__ import annotations
@@ -13,10 +16,12 @@ import json
 from pathlib import Path
 from typing import Iterator
 
-from .places import OUT
+from .places import OUT, SHARED_DATA
 
 WORLDS = OUT / "worlds"
 """Where :func:`synthetic_world` keeps its renderings."""
+SUITE_OUT = OUT / "suite"
+"""Where :func:`suite_sequence` keeps the suite's renderings."""
 LAYOUTS = ("tum", "7scenes")
 
 
@@ -84,6 +89,53 @@ def synthetic_world(width: int = 320, height: int = 240, frames: int = 600, seed
     with _locked(folder):
         if not _matches(folder, width, height, frames, seed, layout):  # another process may have just written it
             write(folder, num_frames=frames, width=width, height=height, seed=seed, overwrite=True)
+    return folder
+
+
+def suite_folder_name(name: str, width: int, height: int, frames: int | None = None, default_frames: int | None = None) -> str:
+    """The cache folder name of a suite sequence's rendering: its name, with ``_<frames>f`` and
+    ``_<width>x<height>`` added where they differ from its own length and the suite's size."""
+    from sl4slam.synthetic.suite import SUITE_HEIGHT, SUITE_WIDTH
+
+    folder = name
+    if frames is not None and int(frames) != default_frames:
+        folder += f"_{int(frames)}f"
+    if (int(width), int(height)) != (SUITE_WIDTH, SUITE_HEIGHT):
+        folder += f"_{int(width)}x{int(height)}"
+    return folder
+
+
+def suite_sequence(name: str, width: int | None = None, height: int | None = None, frames: int | None = None,
+                   *, root: str | Path | None = None) -> Path:
+    """The folder of a sequence of the suite: a synthetic one rendered once and reused, a real one
+    in the shared data (``../shared/data``).
+
+    Args:
+        name: the sequence's name in :data:`sl4slam.synthetic.suite.SUITE`.
+        width, height: image size of a synthetic sequence (default: the suite's, 256x192).
+        frames: a synthetic sequence's length (default: its own); a shorter rendering of the same
+            style and seed, for quick runs.
+        root: where renderings live (default ``benchmarks/out/suite``).
+
+    Returns:
+        The folder (a real sequence's may not exist: callers skip it then).
+    """
+    from sl4slam.synthetic.suite import SUITE_HEIGHT, SUITE_WIDTH, get_sequence, is_rendered
+
+    sequence = get_sequence(name)
+    if sequence.real:
+        return SHARED_DATA / sequence.folder
+    width, height = width or SUITE_WIDTH, height or SUITE_HEIGHT
+    frames = int(frames or sequence.frames)
+    folder = Path(root or SUITE_OUT) / suite_folder_name(name, width, height, frames, sequence.frames)
+    if is_rendered(folder, sequence, width, height, frames):
+        return folder
+    from sl4slam.synthetic import write_synthetic_sequence
+
+    with _locked(folder):
+        if not is_rendered(folder, sequence, width, height, frames):
+            write_synthetic_sequence(folder, num_frames=frames, width=width, height=height, seed=sequence.seed,
+                                     overwrite=True, style=sequence.style)
     return folder
 
 

@@ -133,7 +133,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     view = _viewer_settings(args) if args.view else None
     run_slam(args.source, args.out, config, replay_dir=args.replay, progress=not args.quiet, overwrite=args.overwrite,
-             view=view, all_frames=args.all_frames, keep_viewer=view is not None)
+             view=view, all_frames=args.all_frames, keep_viewer=view is not None, resume=args.resume)
     return 0
 
 
@@ -177,17 +177,57 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from .synthetic import write_seven_scenes_sequence, write_synthetic_sequence
+    from .synthetic import get_style, write_seven_scenes_sequence, write_synthetic_sequence
+    from .synthetic.suite import SUITE_HEIGHT, SUITE_WIDTH, write_suite
 
-    if args.layout == "7scenes":
-        path = write_seven_scenes_sequence(args.out, num_frames=args.frames, width=args.width, height=args.height,
-                                           seed=args.seed, overwrite=args.overwrite)
-        print(f"wrote {args.frames} frames to {path} (7-Scenes layout)")
+    if args.list:
+        _print_styles_and_suite()
         return 0
-    path = write_synthetic_sequence(args.out, num_frames=args.frames, width=args.width, height=args.height, seed=args.seed,
-                                    overwrite=args.overwrite)
-    print(f"wrote {args.frames} frames to {path} (contact sheet: {Path(path) / 'contact_sheet.png'})")
+    if args.suite is not None:
+        single = [flag for flag, value in (("--out", args.out), ("--style", args.style), ("--frames", args.frames),
+                                           ("--seed", args.seed), ("--layout", args.layout)) if value is not None]
+        if single:
+            raise UserError(f"--suite writes the suite's own sequences and takes only --split, --width, --height and "
+                            f"--overwrite; drop {', '.join(single)}")
+        folders = write_suite(args.suite, width=_given(args.width, SUITE_WIDTH), height=_given(args.height, SUITE_HEIGHT),
+                              split=args.split, overwrite=args.overwrite, report=print)
+        print(f"{len(folders)} synthetic sequences in {args.suite} (real sequences are read from their own folders: "
+              "sl4slam synth --list)")
+        return 0
+    if args.out is None:
+        raise UserError("synth needs --out DIR (one sequence) or --suite ROOT (the whole suite)")
+    if args.split is not None:
+        raise UserError("--split chooses a half of --suite; give --suite ROOT with it")
+    style = get_style(args.style) if args.style is not None else None
+    frames = args.frames if args.frames is not None else (style.frames if style else 600)
+    options = dict(num_frames=frames, width=_given(args.width, 320), height=_given(args.height, 240),
+                   seed=_given(args.seed, 0), overwrite=args.overwrite, style=args.style)
+    if args.layout == "7scenes":
+        path = write_seven_scenes_sequence(args.out, **options)
+        print(f"wrote {frames} frames to {path} (7-Scenes layout)")
+        return 0
+    path = write_synthetic_sequence(args.out, **options)
+    print(f"wrote {frames} frames to {path} (contact sheet: {Path(path) / 'contact_sheet.png'})")
     return 0
+
+
+def _given(value, default):
+    """A flag's value, or ``default`` when it was not given."""
+    return default if value is None else value
+
+
+def _print_styles_and_suite() -> None:
+    """``synth --list``: every style, then every sequence of the suite with its half."""
+    from .synthetic.styles import STYLES, style_summary
+    from .synthetic.suite import SPLIT_RULE, SUITE, SUITE_HEIGHT, SUITE_WIDTH
+
+    print("styles (sl4slam synth --style NAME [--frames N] [--seed S]):")
+    for style in STYLES.values():
+        print(f"  {style_summary(style)}")
+    print(f"\nsuite (sl4slam synth --suite ROOT, {SUITE_WIDTH}x{SUITE_HEIGHT}; split: {SPLIT_RULE}):")
+    for sequence in SUITE:
+        what = f"{sequence.frames} frames, seed {sequence.seed}" if not sequence.real else f"real: {sequence.folder}"
+        print(f"  {sequence.name:28s} {sequence.split:9s} {what}")
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -313,6 +353,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--config", help="TOML or JSON file of settings (flags override it)")
     run.add_argument("--replay", help="replay recorded frontend outputs from this folder instead of running the model")
     run.add_argument("--overwrite", action="store_true", help="replace an earlier run in --out (its files are removed first)")
+    run.add_argument("--resume", action="store_true",
+                     help="continue the run in --out that was killed or interrupted, with the same SOURCE and settings: "
+                          "the submaps whose model outputs it recorded are replayed without the model, and the outputs "
+                          "equal those of a run that was never interrupted (a run records what this needs unless --no-resumable)")
     run.add_argument("--quiet", action="store_true", help="no progress output")
     run.add_argument("--view", action="store_true",
                      help="watch the map grow in the browser (needs sl4slam[viewer]); it stays open after the run until Ctrl-C")
@@ -346,13 +390,18 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=cmd_demo)
 
     synth = verbs.add_parser("synth", help="render the synthetic RGB-D world as a TUM RGB-D or 7-Scenes sequence")
-    synth.add_argument("--out", required=True, help="output folder (for an evaluation root: ROOT/NAME, or ROOT/SCENE/seq-01)")
-    synth.add_argument("--layout", choices=["tum", "7scenes"], default="tum",
-                       help="tum: rgb.txt, depth.txt, groundtruth.txt; 7scenes: frame-XXXXXX.{color,depth}.png, .pose.txt")
-    synth.add_argument("--frames", type=int, default=600)
-    synth.add_argument("--width", type=int, default=320)
-    synth.add_argument("--height", type=int, default=240)
-    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--out", help="output folder (for an evaluation root: ROOT/NAME, or ROOT/SCENE/seq-01)")
+    synth.add_argument("--style", metavar="NAME",
+                       help="room, textures and camera motion (sl4slam synth --list; default: the original world's lap)")
+    synth.add_argument("--suite", metavar="ROOT", help="write every synthetic sequence of the suite as ROOT/NAME (256x192)")
+    synth.add_argument("--split", metavar="HALF", help="with --suite: only the tune or the validate half")
+    synth.add_argument("--list", action="store_true", help="list the styles and the suite's sequences with their half")
+    synth.add_argument("--layout", choices=["tum", "7scenes"], default=None,
+                       help="tum (default): rgb.txt, depth.txt, groundtruth.txt; 7scenes: frame-XXXXXX.{color,depth}.png, .pose.txt")
+    synth.add_argument("--frames", type=int, default=None, help="frames (default: 600, or the style's length)")
+    synth.add_argument("--width", type=int, default=None, help="image width (default: 320; the suite's: 256)")
+    synth.add_argument("--height", type=int, default=None, help="image height (default: 240; the suite's: 192)")
+    synth.add_argument("--seed", type=int, default=None, help="world and path seed (default 0)")
     synth.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     synth.set_defaults(func=cmd_synth)
 

@@ -1,9 +1,18 @@
 """The keyframes a run keeps: each stored compactly (``sl4slam.submap.StoredKeyframe``) in time
-order, found by frame index, with the ground-truth poses the source gave for them."""
+order, found by frame index, with the ground-truth poses the source gave for them.
+
+RAM stays bounded on long runs: beyond the newest ``in_ram`` keyframes, a keyframe's image-sized
+arrays (depth, mask, confidence: about 0.36 MB at 518x294) move to a file of the store's folder
+and are read back, the same bytes, whenever a loop check, the map or the outputs need them. What
+the graph and retrieval use (identity, camera) stays in RAM.
+"""
 
 from __future__ import annotations
 
 import bisect
+import os
+import tempfile
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -15,14 +24,24 @@ from .types import Frame
 class KeyframeStore:
     """The stored keyframes of a run, in the order they were stored (time order).
 
+    Args:
+        in_ram: how many of the newest keyframes keep their image-sized arrays in RAM; older ones
+            are spilled to files (``0``: every keyframe stays in RAM).
+        folder: where spilled keyframes go (created when the first one is spilled); ``None``: a
+            temporary folder, removed with the store.
+
     Attributes:
         keyframes: the stored keyframes (the list itself: readers may hold it while the run grows).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, in_ram: int = 0, folder: str | os.PathLike | None = None) -> None:
         self.keyframes: list[StoredKeyframe] = []
         self._by_frame: dict[int, StoredKeyframe] = {}
         self._ground_truth: dict[int, np.ndarray] = {}
+        self.in_ram = int(in_ram)
+        self._folder = Path(folder) if folder is not None else None
+        self._temporary: tempfile.TemporaryDirectory | None = None
+        self._spilled = 0  # keyframes[:_spilled] are spilled
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -31,9 +50,33 @@ class KeyframeStore:
         return frame_index in self._by_frame
 
     def add(self, keyframe: StoredKeyframe) -> None:
-        """Keep ``keyframe`` (after every keyframe stored so far in time)."""
+        """Keep ``keyframe`` (after every keyframe stored so far in time); spill the oldest one kept
+        in RAM when more than ``in_ram`` are."""
         self.keyframes.append(keyframe)
         self._by_frame[keyframe.frame_index] = keyframe
+        if self.in_ram > 0:
+            while len(self.keyframes) - self._spilled > self.in_ram:
+                old = self.keyframes[self._spilled]
+                old.spill(self.folder / f"{old.frame_index:06d}.npz", owner=self._temporary)
+                self._spilled += 1
+
+    @property
+    def folder(self) -> Path:
+        """The folder of the spilled keyframes (made on first use)."""
+        if self._folder is None:
+            self._temporary = tempfile.TemporaryDirectory(prefix="sl4slam-keyframes-")
+            self._folder = Path(self._temporary.name)
+        self._folder.mkdir(parents=True, exist_ok=True)
+        return self._folder
+
+    @property
+    def spilled(self) -> int:
+        """How many keyframes have their image-sized arrays in files."""
+        return self._spilled
+
+    def ram_bytes(self) -> int:
+        """Bytes of keyframe arrays held in RAM."""
+        return int(sum(k.ram_bytes for k in self.keyframes))
 
     def get(self, frame_index: int) -> StoredKeyframe:
         """The stored keyframe of input frame ``frame_index`` (``KeyError`` when none is stored)."""

@@ -7,7 +7,7 @@ import shutil
 from pathlib import Path
 
 RUN_FILES = ("trajectory.txt", "trajectory_gt.txt", "trajectory_all.txt", "map.ply", "summary.json", "trajectory.png",
-             "keyframes", "frontend_cache")
+             "keyframes", "frontend_cache", ".keyframe_store")
 """What a run writes into its folder (``--overwrite`` removes exactly these)."""
 
 

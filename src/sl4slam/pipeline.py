@@ -35,6 +35,7 @@ Nothing that goes wrong inside a submap ends a run:
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Sequence
@@ -92,6 +93,8 @@ class SLAMPipeline:
         resolved: the run's settings, resolved once at the entry point (``sl4slam.resolve.resolve``).
         stages: the run's stages (``sl4slam.compose.build_stages``).
         on_submap: called as ``on_submap(pipeline, submap_id)`` after every processed submap.
+        keyframe_folder: where keyframes beyond ``submap.keyframes_in_ram`` keep their arrays
+            (``sl4slam.keyframe_store``); ``None``: a temporary folder.
 
     Example (:meth:`from_config` resolves the settings and builds the stages)::
 
@@ -103,7 +106,8 @@ class SLAMPipeline:
     """
 
     def __init__(self, resolved: ResolvedConfig, stages: Stages,
-                 on_submap: Callable[["SLAMPipeline", int], None] | None = None) -> None:
+                 on_submap: Callable[["SLAMPipeline", int], None] | None = None,
+                 keyframe_folder: str | os.PathLike | None = None) -> None:
         self.resolved = resolved
         self.config = resolved.config
         self.frontend: Frontend = stages.frontend
@@ -118,7 +122,7 @@ class SLAMPipeline:
                                                       self.resolved.complete_links)
         self.selector = self.config.keyframes.setup()
         self.on_submap = on_submap
-        self.keyframe_store = KeyframeStore()
+        self.keyframe_store = KeyframeStore(self.config.submap.keyframes_in_ram, keyframe_folder)
         self.ledger = RunLedger()
         self.shared = SharedFrames()
         self.stop_requested = False

@@ -11,12 +11,20 @@ During the run ``trajectory.txt`` and ``summary.json`` are rewritten from the cu
 ``OutputConfig.checkpoint_seconds``. SIGINT / SIGTERM finish the current submap, write every output
 and raise :class:`RunInterrupted`; a second SIGINT stops at once, still writing what the finished
 submaps hold. A frontend that keeps failing ends the run the same way, with its outputs.
+
+Each submap's model output is recorded in ``frontend_cache/`` as the model returns it, beside a
+manifest (``sl4slam.resume``), so that a run killed outright (SIGKILL, a power cut, the
+out-of-memory killer) continues with ``resume=True`` (``sl4slam run ... --resume``): the source is
+read again from its start, the recorded submaps are replayed without the model, and the outputs are
+those of a run that was never interrupted. The recording is removed when the run completes (kept
+with ``output.cache_frontend``).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import shutil
 import signal
 import sys
 import threading
@@ -50,11 +58,13 @@ def signal_exit_code(signum: int) -> int:
     return 128 + int(signum)
 
 
-def prepare_output(out_dir: str | Path, overwrite: bool = False, keep: str | Path | None = None) -> Path:
+def prepare_output(out_dir: str | Path, overwrite: bool = False, keep: str | Path | None = None,
+                   resume: bool = False) -> Path:
     """Create ``out_dir`` and prove it writable, before any work.
 
     A folder holding an earlier run is refused unless ``overwrite``, which removes that run's
-    files first (never ``keep``, e.g. a frontend cache being replayed from inside it).
+    files first (never ``keep``, e.g. a frontend cache being replayed from inside it), or
+    ``resume``, which continues it (its checkpoint is checked by ``sl4slam.resume.read_manifest``).
     """
     from .paths import clear_run, holds_run
 
@@ -65,8 +75,13 @@ def prepare_output(out_dir: str | Path, overwrite: bool = False, keep: str | Pat
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"cannot create the output folder --out {out}: {exc.strerror or exc}; choose another folder") from None
-    if holds_run(out):
+    if holds_run(out) and not resume:
         if not overwrite:
+            from .resume import manifest_path
+
+            if manifest_path(out).is_file():
+                raise UserError(f"--out {out} holds a run that did not finish; pass --resume to continue it, "
+                                "--overwrite to replace it, or choose another folder")
             raise UserError(f"--out {out} holds an earlier run; pass --overwrite to replace it, or choose another folder")
         if keep is not None and Path(keep).resolve().is_relative_to(out.resolve()):
             raise UserError(f"--overwrite would delete {keep}, which this run replays; write the new run elsewhere")
@@ -82,7 +97,8 @@ def prepare_output(out_dir: str | Path, overwrite: bool = False, keep: str | Pat
 
 def run_slam(source_path: "str | Path | FrameSource", out_dir: str | Path, config: SLAMConfig, replay_dir: str | None = None,
              progress: bool = True, overwrite: bool = False,
-             on_submap: Callable | None = None, view=None, all_frames: bool = False, keep_viewer: bool = False) -> dict:
+             on_submap: Callable | None = None, view=None, all_frames: bool = False, keep_viewer: bool = False,
+             resume: bool = False) -> dict:
     """Open ``source_path``, run the pipeline, write every output into ``out_dir``; return the summary.
 
     The way to run SLAM from Python to a result folder (``sl4slam run`` calls it)::
@@ -103,23 +119,31 @@ def run_slam(source_path: "str | Path | FrameSource", out_dir: str | Path, confi
         view: ``sl4slam.viewer.ViewerSettings`` to watch the run in the browser (kept open after
             the run until Ctrl-C when ``keep_viewer``).
         all_frames: also localize every other frame (``trajectory_all.txt``, ``sl4slam.localize``).
+        resume: continue the run in ``out_dir`` that was killed or interrupted, from the model outputs
+            it recorded (``sl4slam.resume``): the same source and settings; the outputs are those of
+            a run that was never interrupted.
 
     Raises:
         UserError: bad settings, output folder, source, or weights (before any frame is read; a
-            folder this call created is removed again); a stage's own ``UserError`` during the run,
-            after the finished work is written.
+            folder this call created is removed again); for ``resume``, an ``out_dir`` without a
+            checkpoint or one from another source, settings or format, ``overwrite``, a replay or a
+            live source; a stage's own ``UserError`` during the run, after the finished work is
+            written.
         RunInterrupted: a signal stopped the run, or the frontend kept failing; the partial results
             are written first.
     """
     from .compose import replay_capabilities
 
+    if resume and overwrite:
+        raise UserError("--resume continues the run in --out, which --overwrite would delete; pass one of them")
     resolved = resolve(config, capabilities=replay_capabilities(replay_dir) if replay_dir is not None else None)
+    manifest = _resumable_run(source_path, out_dir, resolved, replay_dir) if resume else None
     if view is not None:
         from .viewer.app import require_viser
 
         require_viser()
     existed = Path(out_dir).expanduser().exists()
-    out = prepare_output(out_dir, overwrite, keep=replay_dir)
+    out = prepare_output(out_dir, overwrite, keep=replay_dir, resume=resume)
     try:
         from .io import open_source
 
@@ -129,10 +153,35 @@ def run_slam(source_path: "str | Path | FrameSource", out_dir: str | Path, confi
         raise
     live = bool(getattr(source, "live", False))
     try:
-        return _run(source, live, out, existed, resolved, replay_dir, progress, on_submap, view, all_frames, keep_viewer)
+        if manifest is not None and live:
+            raise UserError(_LIVE_RESUME)
+        return _run(source, live, out, existed, resolved, replay_dir, progress, on_submap, view, all_frames, keep_viewer,
+                    manifest)
     finally:
         if live:
             source.close()  # stops the reader thread, removes the kept frames
+
+
+_LIVE_RESUME = ("--resume reads the source again from its first frame, which a live camera or stream cannot give; "
+                "record the stream to a file and run on that")
+
+
+def _resumable_run(source_path, out_dir, resolved: ResolvedConfig, replay_dir) -> dict:
+    """The checks of ``resume`` that need no frame: no replay, no live source, a checkpoint in
+    ``out_dir`` of this format and these settings. Returns its manifest."""
+    from .resume import check_settings, read_manifest
+
+    if replay_dir is not None:
+        raise UserError("--resume continues a run of the model; a --replay run has no model work to keep: "
+                        "run it again with --overwrite")
+    if not _is_source(source_path):
+        from .io.live import is_live_spec
+
+        if is_live_spec(str(source_path)) and not Path(source_path).exists():
+            raise UserError(_LIVE_RESUME)
+    manifest = read_manifest(Path(out_dir))
+    check_settings(manifest, resolved, Path(out_dir).expanduser())
+    return manifest
 
 
 def _is_source(value) -> bool:
@@ -187,25 +236,35 @@ def say_cpu_cost(resolved: ResolvedConfig, source_frames: int | None, stream=Non
 
 
 def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig, replay_dir, progress: bool, on_submap,
-         view, all_frames: bool, keep_viewer: bool) -> dict:
+         view, all_frames: bool, keep_viewer: bool, manifest: dict | None = None) -> dict:
     from .compose import build_stages
     from .pipeline import SLAMPipeline
     from .result.outputs import write_checkpoint, write_outputs
 
     config = resolved.config
+    recording = manifest is not None or (config.output.resumable and replay_dir is None and not live)
     try:
         check_before_frames(source, resolved, replay_dir, all_frames, live)
+        identity = None
+        if recording:  # five frames read, before the model is loaded
+            from .resume import check_source, source_identity
+
+            identity = source_identity(source)
+            if manifest is not None:
+                check_source(manifest, identity, out)
         if progress and replay_dir is None:
             say_cpu_cost(resolved, None if live else len(source))
-        cache_dir = out / "frontend_cache" if config.output.cache_frontend else None
+        cache_dir = out / "frontend_cache" if config.output.cache_frontend and not recording else None
         stages = build_stages(resolved, replay_dir=replay_dir, cache_dir=cache_dir)
         stages.frontend.prepare()
+        resumer = _record_for_resume(stages, out, resolved, identity, manifest) if recording else None
     except UserError:
         _remove_if_created(out, existed)
         raise
     if progress:
         print("\n".join(resolved.lines()), file=sys.stderr, flush=True)
     last_write = [time.perf_counter()]
+    replayed_until = [0.0]  # when the last submap served from the recording was finished
 
     viewer = None
     if view is not None:
@@ -216,13 +275,16 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
                              _live_status(source) if live and progress else None) if c]
 
     def checkpoint(pipeline: SLAMPipeline, submap_id: int) -> None:
+        if resumer is not None and submap_id in resumer.replayed:
+            replayed_until[0] = time.perf_counter()
         for callback in callbacks:
             callback(pipeline, submap_id)
         if time.perf_counter() - last_write[0] >= config.output.checkpoint_seconds:
             write_checkpoint(pipeline.snapshot(), out, resolved, {"source": source.name})
             last_write[0] = time.perf_counter()
 
-    pipeline = SLAMPipeline(resolved, stages, on_submap=checkpoint)
+    keyframe_folder = out / ".keyframe_store"  # older keyframes' arrays (submap.keyframes_in_ram); removed below
+    pipeline = SLAMPipeline(resolved, stages, on_submap=checkpoint, keyframe_folder=keyframe_folder)
     if live:
         # the source keeps exactly the frames the pipeline selected as keyframes (loop closures re-read them)
         source.keyframe_counter = lambda: pipeline.selector.num_keyframes
@@ -236,13 +298,18 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
         except KeyboardInterrupt:
             pipeline.stop_requested = True
             stopper.signum = stopper.signum or signal.SIGINT
+        finally:
+            resumable = resumer is not None and resumer.recording
+            if resumer is not None:
+                resumer.close()  # a forward left running is not recorded: no write cut short at exit
     finished = len({k.submap_id for k in pipeline.keyframes})
     if pipeline.stop_requested and status == "complete":
         status, stop_reason = "interrupted", f"interrupted after {finished} finished submap(s)"
     exit_code = signal_exit_code(stopper.signum or signal.SIGINT) if status == "interrupted" else 1
+    again = "; --resume continues it" if resumable else ""
     if not pipeline.keyframes:
-        raise RunInterrupted(f"{stop_reason or 'no keyframes'}; nothing was finished, so nothing was written to {out}",
-                             exit_code)
+        raise RunInterrupted(f"{stop_reason or 'no keyframes'}; nothing was finished, so no result was written to "
+                             f"{out}{again}", exit_code)
     result = pipeline.finish()
     result.stats["seconds_total"] = time.perf_counter() - start
     extra = {"stop_reason": stop_reason} if stop_reason else {}
@@ -253,8 +320,18 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
     if all_frames and status == "complete":
         summary["all_frames"] = _localize_all_frames(source, result, stages.frontend, out, config.localize, progress)
         atomic_write_bytes(out / "summary.json", json.dumps(summary, indent=2).encode())
+    shutil.rmtree(keyframe_folder, ignore_errors=True)  # every keyframe is in keyframes/ now
+    if resumer is not None and status == "complete":
+        from .resume import close
+
+        close(out, keep_recording=config.output.cache_frontend)
     if progress:
         print_summary(summary, out, stream=sys.stdout)
+        if manifest is not None:
+            from .resume import resume_line
+
+            print(resume_line(len(resumer.replayed), len(resumer.reconstructed), replayed_until[0] - start
+                              if resumer.replayed else 0.0), file=sys.stderr, flush=True)
     if viewer is not None:
         viewer.finish(result, summary)
         if keep_viewer:
@@ -262,8 +339,32 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
             viewer.serve_until_stopped()
         viewer.close()
     if status != "complete":
-        raise RunInterrupted(f"{stop_reason}; partial results written to {out}", exit_code)
+        raise RunInterrupted(f"{stop_reason}; partial results written to {out}{again}", exit_code)
     return summary
+
+
+def _record_for_resume(stages, out: Path, resolved: ResolvedConfig, identity: dict, manifest: dict | None):
+    """Wrap the run's frontend so that each submap's model output is recorded as it comes
+    (``sl4slam.frontend.cache.ResumingFrontend``) and, when resuming (``manifest`` given), served from
+    its recording; a new run writes its manifest first, a resumed one keeps its own and clears the
+    killed run's other outputs. Returns the wrapper."""
+    from .frontend.cache import ResumingFrontend
+    from .resume import RECORDING_DIR, clear_outputs, intact_recordings, write_manifest
+
+    output = resolved.config.output
+    directory = out / RECORDING_DIR
+    try:
+        if manifest is not None:
+            intact_recordings(directory)
+            clear_outputs(out)
+        else:
+            write_manifest(out, resolved, identity)
+    except OSError as exc:
+        raise UserError(f"cannot write the checkpoint into {directory}: {exc.strerror or exc}; free some space, "
+                        "or run with --no-resumable") from None
+    stages.frontend = ResumingFrontend(stages.frontend, directory, compressed=output.cache_frontend,
+                                       record=output.resumable)
+    return stages.frontend
 
 
 def _live_status(source):

@@ -10,13 +10,16 @@ kept: the frontend re-derives them from the source frame when the map is written
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 from typing import ClassVar
 
 import cv2
 import numpy as np
 
+from .atomic import atomic_write_npz
 from .geometry import to_4x4, unproject_depth
 from .section import Section, setting
 from .types import FrameView, SubmapPrediction
@@ -47,6 +50,11 @@ class SubmapConfig(Section):
     """Percentile of the submap's confidence below which pixels are dropped (reference code: 25)."""
     use_point_head: bool = False
     """Use the frontend's point map instead of unprojecting depth (VGGT offers both)."""
+    keyframes_in_ram: int = setting(1024, advanced=True, check=lambda v: v >= 0, allowed=">= 0 (0: every keyframe)")
+    """Newest keyframes whose depth, mask and confidence stay in RAM (about 0.36 MB each at
+    518x294); older ones are kept in files of the run's folder (``.keyframe_store``, removed when
+    the run ends; a temporary folder for a library run) and read back, the same bytes, when a
+    loop check or the outputs need them. 0: every keyframe in RAM."""
 
     def validate(self) -> None:
         super().validate()
@@ -57,6 +65,7 @@ class SubmapConfig(Section):
                       "of the submap before")
         # 100 would drop every pixel (an empty map); the percentile is over the whole submap
         self._require("tau_conf", 0 <= self.tau_conf < 100, "a percentile in [0, 100)")
+
 
 RANK_LEVELS = 255
 """Confidence ranks are stored as uint8: 0..255 spans the submap's 0..100th percentile."""
@@ -283,6 +292,10 @@ class StoredKeyframe:
             in its submap (0..255 for 0..100 %), every second pixel in each direction.
         K: ``(3, 3)`` float64 intrinsics; T_cam_submap: ``(4, 4)`` float64 extrinsics.
         principal_point: ``(2,)`` float64 the principal point the frontend assumes (pixels).
+
+    The three image-sized arrays (``depth``, ``mask_bits``, ``confidence_rank``) can be moved to a
+    file (:meth:`spill`); they are then read back from it on every access, the same bytes, and
+    the keyframe keeps only its identity and camera in RAM (:attr:`ram_bytes`).
     """
 
     frame_index: int
@@ -343,5 +356,44 @@ class StoredKeyframe:
 
     @property
     def nbytes(self) -> int:
+        """Bytes of everything the keyframe stores (in RAM or in its file)."""
         return int(sum(a.nbytes for a in (self.depth, self.mask_bits, self.confidence_rank, self.K, self.T_cam_submap,
                                           self.principal_point)))
+
+    @property
+    def ram_bytes(self) -> int:
+        """Bytes of the arrays the keyframe holds in RAM (the image-sized ones only until spilled)."""
+        held = [self.K, self.T_cam_submap, self.principal_point]
+        if not self.spilled:
+            held += [self.depth, self.mask_bits, self.confidence_rank]
+        return int(sum(a.nbytes for a in held))
+
+    @property
+    def spilled(self) -> bool:
+        """Whether the image-sized arrays live in a file (:meth:`spill`)."""
+        return "_spill_path" in self.__dict__
+
+    def spill(self, path: str | os.PathLike, owner: object = None) -> None:
+        """Move ``depth``, ``mask_bits`` and ``confidence_rank`` into the file ``path`` (``.npy``
+        arrays in one uncompressed ``.npz``, written atomically) and drop them from RAM; every later
+        access reads them back. ``owner``: an object that keeps the file's folder alive (a temporary
+        folder), held as long as the keyframe. A keyframe spilled already is left as it is."""
+        if self.spilled:
+            return
+        atomic_write_npz(path, {name: getattr(self, name) for name in _SPILLED}, compressed=False)
+        for name in _SPILLED:
+            del self.__dict__[name]
+        self.__dict__["_spill_path"] = Path(path)
+        self.__dict__["_spill_owner"] = owner
+
+    def __getattr__(self, name: str):
+        # only reached for an attribute the instance lacks: a spilled array, read back from its file
+        spill_path = self.__dict__.get("_spill_path")
+        if name in _SPILLED and spill_path is not None:
+            with np.load(spill_path) as arrays:
+                return arrays[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+
+_SPILLED = ("depth", "mask_bits", "confidence_rank")
+"""The image-sized arrays of a :class:`StoredKeyframe`, which :meth:`StoredKeyframe.spill` moves to a file."""

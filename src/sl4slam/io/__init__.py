@@ -15,13 +15,12 @@ iterated or fetched with ``get``) and lists unreadable inputs in ``skipped``.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from pathlib import Path
 
 from sl4slam.errors import UserError
 from sl4slam.io._common import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, natural_key, read_depth, read_rgb
 from sl4slam.io.image_folder import ImageFolderSource
+from sl4slam.io.settings import SourceConfig
 from sl4slam.io.live import LiveSource, is_live_spec
 from sl4slam.io.memory import ListSource
 from sl4slam.io.seven_scenes import SevenScenesSource, is_seven_scenes_folder
@@ -53,9 +52,6 @@ __all__ = [
     "read_depth",
     "TUM_DEPTH_SCALE",
 ]
-
-if TYPE_CHECKING:
-    from .settings import SourceConfig
 
 _KINDS = "an image folder, a video file, a TUM RGB-D / 7-Scenes sequence folder, a camera index or a stream URL"
 

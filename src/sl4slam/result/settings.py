@@ -29,6 +29,12 @@ class OutputConfig(Section):
     (trajectory and ``map.ply`` only). (decision: docs/decisions/keyframe-format.md)"""
     cache_frontend: bool = False
     """Store the frontend's outputs so the backend can be re-run without the model."""
+    resumable: bool = True
+    """Record each submap's model output in ``--out``/frontend_cache/ as soon as the model returns it,
+    so that ``--resume`` continues a killed run without running the model again on those submaps
+    (``sl4slam.resume``). Stored uncompressed: 11 bytes per pixel of a frame of a submap (float32
+    depth and confidence, RGB), 1.6 MiB per frame at VGGT's 518x294, 32 MiB for a submap of 20
+    frames. Removed when the run completes, unless ``--cache-frontend`` keeps it (compressed)."""
     checkpoint_seconds: float = setting(10.0, advanced=True, check=lambda v: v >= 0, allowed=">= 0 s")
     """``trajectory.txt`` and ``summary.json`` are rewritten from the current graph after a submap
     once this many seconds have passed since the last write (0: after every submap), so an

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import logging
 import os
@@ -17,6 +18,7 @@ from sl4slam.errors import UserError
 from sl4slam.io.seven_scenes import SEVEN_SCENES_INVALID_DEPTH, seven_scenes_intrinsics
 from sl4slam.io.tum import TUM_DEPTH_SCALE, write_tum_trajectory
 from sl4slam.synthetic.render import default_intrinsics, render_frames
+from sl4slam.synthetic.styles import check_style_request, get_style, make_style_layout, make_style_world, style_path
 from sl4slam.synthetic.world import (
     FLOOR_HOLD,
     FLOOR_SURFACE,
@@ -63,11 +65,17 @@ def _longest_run(flags: np.ndarray) -> tuple[int, int]:
     return best
 
 
-def _check_request(out_dir: Path, num_frames: int, width: int, height: int, overwrite: bool) -> None:
+def _check_request(out_dir: Path, num_frames: int, width: int, height: int, overwrite: bool, seed: int = 0,
+                   style: str | None = None) -> None:
+    if style is not None:
+        get_style(style)
+        check_style_request(num_frames, width, height, seed)
     if int(num_frames) < 2:
         raise UserError(f"--frames must be at least 2, got {num_frames}")
     if int(width) < 16 or int(height) < 16:
         raise UserError(f"image size must be at least 16x16 px, got {width}x{height}")
+    if int(seed) < 0:
+        raise UserError(f"--seed must be 0 or more, got {seed}")
     if out_dir.exists() and not (out_dir.is_dir() and not any(out_dir.iterdir())) and not overwrite:
         raise UserError(f"output folder {out_dir} already exists and is not empty; choose another folder or overwrite it")
 
@@ -97,6 +105,31 @@ def _staged(out_dir: Path) -> Iterator[Path]:
             shutil.rmtree(staging, ignore_errors=True)
 
 
+def _world_and_path(style: str | None, seed: int, num_frames: int):
+    """The world and ``(N, 4, 4)`` camera path of a sequence: the original world along its lap, or a style's."""
+    if style is None:
+        world = make_world(seed)
+        return world, _path_from_layout(world.layout, path_parameters(num_frames))
+    layout = make_style_layout(style, seed)
+    return make_style_world(style, seed, layout), style_path(style, num_frames, seed, layout)
+
+
+def path_digest(poses: np.ndarray) -> str:
+    """SHA-256 of a camera path's float64 bytes: tells whether a rendering followed the path a style gives now."""
+    return hashlib.sha256(np.ascontiguousarray(poses, np.float64).tobytes()).hexdigest()
+
+
+def _style_metadata(style: str | None, poses: np.ndarray) -> dict:
+    """``synthetic.json`` entries naming a sequence's style and its path's digest (none for the
+    original world without a style)."""
+    if style is None:
+        return {}
+    chosen = get_style(style)
+    return {"style": {"name": chosen.name, "room": chosen.room, "texture": chosen.texture, "motion": chosen.motion,
+                      "speed": chosen.speed, "loops": chosen.loops, "description": chosen.description,
+                      "path_sha256": path_digest(poses)}}
+
+
 def _metadata(world, seed: int, num_frames: int, width: int, height: int, K: np.ndarray, depth_scale: float,
               depth_range: tuple[float, float], **extra) -> str:
     """``synthetic.json``: what was rendered, with which camera, and the depth range met."""
@@ -117,8 +150,10 @@ def write_synthetic_sequence(
     overwrite: bool = False,
     sheet_frames: int = 24,
     block_frames: int = 32,
+    style: str | None = None,
 ) -> Path:
-    """Render the synthetic world ``seed`` along its looping path and write a TUM RGB-D folder.
+    """Render the synthetic world ``seed`` along its looping path (or a style's world along its path)
+    and write a TUM RGB-D folder.
 
     Output (written to a temporary sibling folder, then renamed into place):
 
@@ -126,7 +161,7 @@ def write_synthetic_sequence(
     - ``rgb.txt``, ``depth.txt``, ``groundtruth.txt`` (camera-to-world, TUM format), 30 Hz,
     - ``calibration.txt`` (``fx = .. fy = .. cx = .. cy = ..``, read by :class:`sl4slam.io.TumSource`),
     - ``synthetic.json``: seed, size, ``K``, the floor-only frame range (measured on the renders:
-      frames where every pixel shows the floor), loop information and depth range,
+      frames where every pixel shows the floor), loop information, depth range and the style,
     - ``contact_sheet.png``: ``sheet_frames`` evenly sampled frames with their indices.
 
     Args:
@@ -137,16 +172,17 @@ def write_synthetic_sequence(
         overwrite: replace an existing ``out_dir``; otherwise an existing non-empty folder is an error.
         sheet_frames: frames shown on the contact sheet.
         block_frames: frames rendered per block (bounds memory).
+        style: a style of :mod:`sl4slam.synthetic.styles` (its room, textures and camera path with
+            this seed); None: the original world and its lap.
 
     Returns:
         ``out_dir`` as a Path.
     """
     out_dir = Path(out_dir)
-    _check_request(out_dir, num_frames, width, height, overwrite)
+    _check_request(out_dir, num_frames, width, height, overwrite, seed, style)
     num_frames, width, height = int(num_frames), int(width), int(height)
 
-    world = make_world(seed)
-    poses = _path_from_layout(world.layout, path_parameters(num_frames))
+    world, poses = _world_and_path(style, seed, num_frames)
     K = default_intrinsics(width, height)
     stamps = _timestamps(num_frames)
     names = [f"{stamp:.6f}.png" for stamp in stamps]
@@ -188,20 +224,22 @@ def write_synthetic_sequence(
         cv2.imwrite(str(staging / CONTACT_SHEET_FILE), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
         floor_start, floor_stop = _longest_run(floor_only)
+        floor = {
+            "start": floor_start,
+            "stop": floor_stop,
+            "count": int(floor_only.sum()),
+            "description": "frames [start, stop) see nothing but the floor (planar, degenerate case)",
+        }
+        if style is None or get_style(style).motion == "lap":
+            floor["designed_path_interval"] = list(FLOOR_HOLD)
+            loop = {"first_frame": 0, "last_frame": num_frames - 1,
+                    "description": "the last pose equals the first; the path circles the room once"}
+        else:
+            loop = {"structure": get_style(style).loops, "description": f"loop structure {get_style(style).loops!r} "
+                    "(sl4slam.synthetic.styles: none 0.7 of a lap, one 1.2 laps, many 3.2 or more)"}
         (staging / METADATA_FILE).write_text(_metadata(
             world, seed, num_frames, width, height, K, TUM_DEPTH_SCALE, (depth_min, depth_max),
-            floor_only={
-                "start": floor_start,
-                "stop": floor_stop,
-                "count": int(floor_only.sum()),
-                "description": "frames [start, stop) see nothing but the floor (planar, degenerate case)",
-                "designed_path_interval": list(FLOOR_HOLD),
-            },
-            loop={
-                "first_frame": 0,
-                "last_frame": num_frames - 1,
-                "description": "the last pose equals the first; the path circles the room once",
-            },
+            floor_only=floor, loop=loop, **_style_metadata(style, poses),
         ))
     logger.info(
         "wrote %d synthetic frames to %s (floor-only frames %d..%d)", num_frames, out_dir, floor_start, floor_stop - 1
@@ -217,8 +255,10 @@ def write_seven_scenes_sequence(
     seed: int = 0,
     overwrite: bool = False,
     block_frames: int = 32,
+    style: str | None = None,
 ) -> Path:
-    """Render the synthetic world ``seed`` and write it as a 7-Scenes sequence folder (``seq-XX``).
+    """Render the synthetic world ``seed`` (or a style's world and path) and write it as a 7-Scenes
+    sequence folder (``seq-XX``).
 
     The layout of the dataset's archives: ``frame-XXXXXX.color.png`` (8-bit RGB),
     ``frame-XXXXXX.depth.png`` (16-bit millimetres, 65535 = invalid; every rendered pixel is
@@ -229,14 +269,14 @@ def write_seven_scenes_sequence(
     sizes keep square pixels.
 
     For an evaluation root, write it as ``ROOT/<scene>/seq-01``. Written to a temporary sibling
-    folder, then renamed into place. Arguments as :func:`write_synthetic_sequence`.
+    folder, then renamed into place. Arguments as :func:`write_synthetic_sequence`; the style is
+    recorded in ``synthetic.json``.
     """
     out_dir = Path(out_dir)
-    _check_request(out_dir, num_frames, width, height, overwrite)
+    _check_request(out_dir, num_frames, width, height, overwrite, seed, style)
     num_frames, width, height = int(num_frames), int(width), int(height)
 
-    world = make_world(seed)
-    poses = _path_from_layout(world.layout, path_parameters(num_frames))
+    world, poses = _world_and_path(style, seed, num_frames)
     K = seven_scenes_intrinsics(width, height)
     with _staged(out_dir) as staging:
         depth_min, depth_max = np.inf, 0.0
@@ -253,7 +293,8 @@ def write_seven_scenes_sequence(
                 _write_image(stem.with_name(stem.name + ".depth.png"), raw_depth[offset])
                 np.savetxt(stem.with_name(stem.name + ".pose.txt"), poses[index], fmt="%.10e", delimiter="\t")
         (staging / METADATA_FILE).write_text(_metadata(world, seed, num_frames, width, height, K, 1000.0,
-                                                       (depth_min, depth_max), layout="7scenes"))
+                                                       (depth_min, depth_max), layout="7scenes",
+                                                       **_style_metadata(style, poses)))
     logger.info("wrote %d synthetic frames in the 7-Scenes layout to %s", num_frames, out_dir)
     return out_dir
 

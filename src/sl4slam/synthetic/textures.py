@@ -206,3 +206,107 @@ def make_texture(rng: np.random.Generator, width_m: float, height_m: float, texe
     _draw_shapes(rng, image, int(params["shapes"] * area), (lo * px_per_m, hi * px_per_m),
                  params["base"], params["saturation"] + 0.3, ("ellipse", "rectangle", "polygon", "stroke", "text"))
     return np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------------------------
+# Texture kinds: normal, low-texture, repetitive
+# --------------------------------------------------------------------------------------------
+
+TEXTURE_KINDS = ("normal", "low", "repetitive")
+"""The kinds of surface texture a world can have (:func:`texture_maker`)."""
+
+_LOW_NOISE_SHARE = 0.25
+"""Low-texture surfaces: amplitude of their value noise, as a share of the normal texture's."""
+_LOW_MARKS_PER_M2 = 1.5
+"""Low-texture surfaces: small faint marks per square metre (stains, switches, screws)."""
+_LOW_MARK_CONTRAST = 0.5
+"""Low-texture surfaces: how much of a mark's colour shows over the base (0: invisible, 1: opaque)."""
+MOTIF_M = {"floor": 0.40, "wall": 0.30, "ceiling": 0.60, "furniture": 0.15}
+"""Repetitive surfaces: side in metres of the square motif each style repeats (tiles, wallpaper, panels)."""
+
+
+def _texture_size(width_m: float, height_m: float, texel_m: float) -> tuple[int, int]:
+    """``(rows, cols)`` of a surface texture (at least 2 x 2 texels)."""
+    return max(2, int(math.ceil(height_m / texel_m))), max(2, int(math.ceil(width_m / texel_m)))
+
+
+def make_low_texture(rng: np.random.Generator, width_m: float, height_m: float, texel_m: float, style: str) -> np.ndarray:
+    """A low-texture surface: the style's base colour, faint large-scale shading and a few faint marks.
+
+    Painted walls, a plain floor, bare furniture: Lucas-Kanade finds few corners away from the
+    edges between surfaces.
+
+    Args:
+        rng: seeded generator (consumed).
+        width_m, height_m: surface extent in metres along its texture u (columns) and v (rows).
+        texel_m: metres per texel.
+        style: one of ``TEXTURE_STYLES``.
+
+    Returns:
+        ``(rows, cols, 3)`` uint8 RGB, sized as :func:`make_texture`'s.
+    """
+    params = _STYLES[style]
+    rows, cols = _texture_size(width_m, height_m, texel_m)
+    image = np.empty((rows, cols, 3), np.float32)
+    image[:] = np.clip(_random_colour(rng, params["base"] * rng.uniform(0.8, 1.15), params["saturation"])
+                       + np.asarray(params["tint"]), 0.0, 1.0)
+    for scale_m in (1.5, 0.6):
+        noise = _value_noise(rng, rows, cols, max(1, int(height_m / scale_m)), max(1, int(width_m / scale_m)))
+        image += noise[:, :, None] * np.float32(params["noise"] * _LOW_NOISE_SHARE)
+    marks = image.copy()
+    px_per_m = 1.0 / texel_m
+    _draw_shapes(rng, marks, int(_LOW_MARKS_PER_M2 * width_m * height_m), (0.02 * px_per_m, 0.08 * px_per_m),
+                 params["base"], params["saturation"], ("ellipse", "rectangle", "stroke"))
+    image += (marks - image) * np.float32(_LOW_MARK_CONTRAST)
+    return np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def make_motif(rng: np.random.Generator, size_m: float, texel_m: float, style: str) -> np.ndarray:
+    """One square motif of a repetitive surface: a small :func:`make_texture` patch with a few bold
+    shapes and a dark grout line along two edges (so that the repeats form a grid).
+
+    Returns:
+        ``(n, n, 3)`` uint8 RGB, ``n = ceil(size_m / texel_m)``.
+    """
+    patch = make_texture(rng, size_m, size_m, texel_m, style).astype(np.float32) / 255.0
+    side = patch.shape[0]
+    _draw_shapes(rng, patch, 4, (0.1 * side, 0.3 * side), 0.5, 0.8, ("ellipse", "rectangle", "polygon"))
+    grout = max(1, int(round(0.01 / texel_m)))
+    patch[:grout] *= 0.35
+    patch[:, :grout] *= 0.35
+    return np.clip(patch * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def texture_maker(kind: str, rng: np.random.Generator):
+    """The texture function of a kind of surface, for :func:`sl4slam.synthetic.world.build_world`.
+
+    Args:
+        kind: one of ``TEXTURE_KINDS``: "normal" (:func:`make_texture`: rich and never repeating),
+            "low" (:func:`make_low_texture`) or "repetitive" (each style's one motif, :data:`MOTIF_M`
+            metres square, repeated over every surface of that style: all walls alike, all floor
+            tiles alike).
+        rng: seeded generator; "repetitive" draws its motifs' seed from it (once, here).
+
+    Returns:
+        ``f(rng, width_m, height_m, texel_m, style) -> (rows, cols, 3) uint8``.
+    """
+    if kind == "normal":
+        return make_texture
+    if kind == "low":
+        return make_low_texture
+    if kind != "repetitive":
+        raise ValueError(f"texture kind must be one of {', '.join(TEXTURE_KINDS)}, got {kind!r}")
+    motif_seed = int(rng.integers(2**63))
+    motifs: dict[tuple[str, float], np.ndarray] = {}
+
+    def make_repetitive(_rng: np.random.Generator, width_m: float, height_m: float, texel_m: float, style: str) -> np.ndarray:
+        key = (style, float(texel_m))
+        if key not in motifs:
+            style_rng = np.random.default_rng(np.random.SeedSequence([motif_seed, TEXTURE_STYLES.index(style)]))
+            motifs[key] = make_motif(style_rng, MOTIF_M[style], texel_m, style)
+        motif = motifs[key]
+        rows, cols = _texture_size(width_m, height_m, texel_m)
+        reps = (-(-rows // motif.shape[0]), -(-cols // motif.shape[1]), 1)
+        return np.ascontiguousarray(np.tile(motif, reps)[:rows, :cols])
+
+    return make_repetitive

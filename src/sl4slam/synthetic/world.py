@@ -17,6 +17,7 @@ look straight at the floor and holds there over ``FLOOR_HOLD`` (the planar, dege
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -42,6 +43,9 @@ MIP_LEVELS = 4
 class Layout:
     """Seeded geometry of a world: room box, camera-path parameters, furniture boxes.
 
+    The path parameters are those of the looping path of :func:`camera_path`; worlds made for
+    other camera paths (:mod:`sl4slam.synthetic.styles`) leave them at zero.
+
     Attributes:
         room_min, room_max: ``(3,)`` float64 room corners (metres, ``room_min = 0``).
         path_centre: ``(2,)`` float64 ellipse centre (x, y).
@@ -58,15 +62,15 @@ class Layout:
 
     room_min: np.ndarray
     room_max: np.ndarray
-    path_centre: np.ndarray
-    path_radii: np.ndarray
-    path_height: float
-    height_wobble: float
-    yaw_offset: float
-    yaw_swing: float
-    swing_phase: float
-    cruise_pitch: float
-    start_angle: float
+    path_centre: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    path_radii: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    path_height: float = 0.0
+    height_wobble: float = 0.0
+    yaw_offset: float = 0.0
+    yaw_swing: float = 0.0
+    swing_phase: float = 0.0
+    cruise_pitch: float = 0.0
+    start_angle: float = 0.0
     boxes_min: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     boxes_max: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
@@ -307,6 +311,36 @@ def make_world(seed: int = 0) -> World:
     """
     layout = make_layout(seed)
     texture_rng = np.random.default_rng(np.random.SeedSequence([int(seed), 2]))
+    return build_world(layout, texture_rng, seed)
+
+
+def build_world(
+    layout: Layout,
+    texture_rng: np.random.Generator,
+    seed: int,
+    texture_maker: Callable[[np.random.Generator, float, float, float, str], np.ndarray] = make_texture,
+    floor_texel_m: float = FLOOR_TEXEL_M,
+    surface_texel_m: float = SURFACE_TEXEL_M,
+    mip_levels: int = MIP_LEVELS,
+    light: np.ndarray | None = None,
+) -> World:
+    """Texture a layout's surfaces and assemble the renderable world.
+
+    Args:
+        layout: the room and its boxes.
+        texture_rng: seeded generator; each surface's texture gets its own generator drawn from it,
+            in surface order (room faces, then each box's six faces).
+        seed: recorded in the world.
+        texture_maker: ``f(rng, width_m, height_m, texel_m, style) -> (rows, cols, 3) uint8`` for
+            the styles "wall", "floor", "ceiling" and "furniture" (default :func:`make_texture`).
+        floor_texel_m, surface_texel_m: metres per texel of the floor and of every other surface.
+        mip_levels: levels of each texture's mip pyramid (more for far surfaces of large rooms).
+        light: ``(3,)`` point light position; default 0.4 m below the ceiling above the lap's
+            path centre (the room centre for layouts without one).
+
+    Returns:
+        The :class:`World`.
+    """
     axes, u_axes, v_axes, signs, origins, normals, styles, textures, extents = [], [], [], [], [], [], [], [], []
 
     def add_surface(axis: int, side: int, lo: np.ndarray, hi: np.ndarray, inward: bool, style: str, texel: float):
@@ -331,27 +365,27 @@ def make_world(seed: int = 0) -> World:
         normals.append(normal)
         styles.append(style)
         extents.append((width_m, height_m))
-        textures.append(make_texture(np.random.default_rng(texture_rng.integers(2**63)), width_m, height_m, texel, style))
+        textures.append(texture_maker(np.random.default_rng(texture_rng.integers(2**63)), width_m, height_m, texel, style))
 
     for axis in range(3):
         for side in range(2):
             style = "wall" if axis < 2 else ("floor" if side == 0 else "ceiling")
-            texel = FLOOR_TEXEL_M if style == "floor" else SURFACE_TEXEL_M
+            texel = floor_texel_m if style == "floor" else surface_texel_m
             add_surface(axis, side, layout.room_min, layout.room_max, True, style, texel)
     for lo, hi in zip(layout.boxes_min, layout.boxes_max):
         for axis in range(3):
             for side in range(2):
-                add_surface(axis, side, lo, hi, False, "furniture", SURFACE_TEXEL_M)
+                add_surface(axis, side, lo, hi, False, "furniture", surface_texel_m)
 
-    pyramids = [_mip_pyramid(t, MIP_LEVELS) for t in textures]
+    pyramids = [_mip_pyramid(t, mip_levels) for t in textures]
     extents_arr = np.array(extents, np.float64)
-    rows = np.array([[p[level].shape[0] for p in pyramids] for level in range(MIP_LEVELS)], np.int64)
-    cols = np.array([[p[level].shape[1] for p in pyramids] for level in range(MIP_LEVELS)], np.int64)
+    rows = np.array([[p[level].shape[0] for p in pyramids] for level in range(mip_levels)], np.int64)
+    cols = np.array([[p[level].shape[1] for p in pyramids] for level in range(mip_levels)], np.int64)
     sizes = (rows * cols).ravel()
     offset = np.concatenate([[0], np.cumsum(sizes)[:-1]]).reshape(rows.shape).astype(np.int64)
     atlas = TextureAtlas(
         texels=np.concatenate(
-            [np.pad(pyramids[s][level].reshape(-1, 3), ((0, 0), (0, 1))) for level in range(MIP_LEVELS) for s in range(len(pyramids))]
+            [np.pad(pyramids[s][level].reshape(-1, 3), ((0, 0), (0, 1))) for level in range(mip_levels) for s in range(len(pyramids))]
         ),
         offset=offset,
         rows=rows,
@@ -359,7 +393,9 @@ def make_world(seed: int = 0) -> World:
         density_u=(cols / np.maximum(extents_arr[None, :, 0], 1e-9)).astype(np.float32),
         density_v=(rows / np.maximum(extents_arr[None, :, 1], 1e-9)).astype(np.float32),
     )
-    light = np.array([layout.path_centre[0], layout.path_centre[1], layout.room_max[2] - 0.4])
+    if light is None:
+        centre = layout.path_centre if np.any(layout.path_centre) else (layout.room_min[:2] + layout.room_max[:2]) / 2.0
+        light = np.array([centre[0], centre[1], layout.room_max[2] - 0.4])
     return World(
         layout=layout,
         surface_axis=np.array(axes, np.int64),
