@@ -43,83 +43,8 @@ POINTS = {"model:5": "in the model (submap 5's forward)",
           "recording:4": "half-way through writing submap 4's recording",
           "outputs:40": "half-way through writing the 40th keyframe file of the outputs"}
 
-CHILD = r"""
-import io, os, signal, sys
-import numpy as np
-
-point, log = sys.argv[1], sys.argv[2]
-kind, _, at = point.partition(":")
-at = int(at) if at else -1
-
-
-def die():
-    os.kill(os.getpid(), signal.SIGKILL)
-
-
-def half_written(path, arrays, compressed):
-    data = io.BytesIO()
-    (np.savez_compressed if compressed else np.savez)(data, **arrays)
-    head, name = os.path.split(os.fspath(path))
-    stem, suffix = os.path.splitext(name)
-    with open(os.path.join(head, f".{stem}.{os.getpid()}.tmp{suffix}"), "wb") as tmp:
-        tmp.write(data.getvalue()[: len(data.getvalue()) // 2])
-    die()
-
-
-from sl4slam.frontend.simulated import SimulatedFrontend
-
-model = SimulatedFrontend.reconstruct
-
-
-def reconstruct(self, frames, submap_id, **keywords):
-    with open(log, "a") as calls:
-        calls.write(f"{submap_id}\n")
-    if kind == "model" and submap_id == at:
-        die()
-    return model(self, frames, submap_id, **keywords)
-
-
-SimulatedFrontend.reconstruct = reconstruct
-if kind == "graph":
-    from sl4slam.backend.keyframe import KeyframeBackend
-    from sl4slam.backend.submap import SubmapBackend
-
-    for cls in (KeyframeBackend, SubmapBackend):
-        def patch(cls=cls, update=cls.update):
-            def killing(self):
-                if self.num_submaps == at + 1:
-                    die()
-                return update(self)
-            cls.update = killing
-        patch()
-if kind == "outputs":
-    import sl4slam.result.outputs as outputs
-
-    written, write = [0], outputs.atomic_write_npz
-
-    def outputs_write(path, arrays, compressed=True):
-        written[0] += 1
-        if written[0] == at:
-            half_written(path, arrays, compressed)
-        write(path, arrays, compressed)
-
-    outputs.atomic_write_npz = outputs_write
-if kind == "recording":
-    import sl4slam.frontend.cache as cache
-
-    record = cache.atomic_write_npz
-
-    def recording_write(path, arrays, compressed=True):
-        if os.path.basename(os.fspath(path)) == f"submap_{at:05d}.npz":
-            half_written(path, arrays, compressed)
-        record(path, arrays, compressed)
-
-    cache.atomic_write_npz = recording_write
-
-from sl4slam.cli import main
-
-sys.exit(main(sys.argv[3:]))
-"""
+KILL_POINTS = Path(__file__).resolve().parent / "harness" / "kill_points.py"
+"""The child that dies at a chosen point (``harness/kill_points.py``)."""
 
 
 READING = [
@@ -136,7 +61,7 @@ READING = [
 
 def child(world: Path, out: Path, point: str, log: Path, *extra: str) -> tuple[float, subprocess.CompletedProcess]:
     start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", CHILD, point, str(log), "run", str(world), "--out", str(out), *ARGS,
+    done = subprocess.run([sys.executable, str(KILL_POINTS), point, str(log), "run", str(world), "--out", str(out), *ARGS,
                            *extra], capture_output=True, text=True, timeout=1200)
     return time.perf_counter() - start, done
 

@@ -33,88 +33,8 @@ from sl4slam.synthetic import write_synthetic_sequence
 ARGS = ["--frontend", "simulated", "--tau-disparity", "12", "--submap-size", "8", "--retrieval", "orb"]
 GRAPH = {"keyframe": [], "submap": ["--graph", "submap"]}  # the keyframe graph is the default
 
-CHILD = r"""
-import io, os, signal, sys
-import numpy as np
-
-point, log = sys.argv[1], sys.argv[2]
-kind, _, at = point.partition(":")
-at = int(at) if at else -1
-
-
-def die():
-    os.kill(os.getpid(), signal.SIGKILL)
-
-
-def half_written(path, arrays, compressed):
-    # what a kill in the middle of an atomic write leaves: half of the temporary file, no rename
-    data = io.BytesIO()
-    (np.savez_compressed if compressed else np.savez)(data, **arrays)
-    path = os.fspath(path)
-    head, name = os.path.split(path)
-    stem, suffix = os.path.splitext(name)
-    with open(os.path.join(head, f".{stem}.{os.getpid()}.tmp{suffix}"), "wb") as tmp:
-        tmp.write(data.getvalue()[: len(data.getvalue()) // 2])
-    die()
-
-
-from sl4slam.frontend.simulated import SimulatedFrontend
-
-model = SimulatedFrontend.reconstruct
-
-
-def reconstruct(self, frames, submap_id, **keywords):
-    with open(log, "a") as calls:
-        calls.write(f"{submap_id}\n")
-    if kind == "model" and submap_id == at:
-        die()
-    return model(self, frames, submap_id, **keywords)
-
-
-SimulatedFrontend.reconstruct = reconstruct
-
-if kind == "graph":  # inside the graph update that holds submap `at`
-    from sl4slam.backend.keyframe import KeyframeBackend
-    from sl4slam.backend.submap import SubmapBackend
-
-    for cls in (KeyframeBackend, SubmapBackend):
-        def patch(cls=cls, update=cls.update):
-            def killing(self):
-                if self.num_submaps == at + 1:
-                    die()
-                return update(self)
-            cls.update = killing
-        patch()
-
-if kind == "outputs":  # the at-th keyframe file of the outputs, half written
-    import sl4slam.result.outputs as outputs
-
-    written, write = [0], outputs.atomic_write_npz
-
-    def outputs_write(path, arrays, compressed=True):
-        written[0] += 1
-        if written[0] == at:
-            half_written(path, arrays, compressed)
-        write(path, arrays, compressed)
-
-    outputs.atomic_write_npz = outputs_write
-
-if kind == "recording":  # submap `at`'s recording, half written
-    import sl4slam.frontend.cache as cache
-
-    record = cache.atomic_write_npz
-
-    def recording_write(path, arrays, compressed=True):
-        if os.path.basename(os.fspath(path)) == f"submap_{at:05d}.npz":
-            half_written(path, arrays, compressed)
-        record(path, arrays, compressed)
-
-    cache.atomic_write_npz = recording_write
-
-from sl4slam.cli import main
-
-sys.exit(main(sys.argv[3:]))
-"""
+KILL_POINTS = Path(__file__).resolve().parents[1] / "benchmarks" / "harness" / "kill_points.py"
+"""The child that dies at a chosen point (shared with ``benchmarks/bench_resume.py``)."""
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +59,7 @@ def run_child(world: Path, out: Path, point: str, log: Path, *extra: str) -> sub
     forward; "graph:K": in the graph update of submap K; "recording:K": half-way through writing
     submap K's recording; "outputs:N": half-way through the N-th keyframe file; "": never), logging
     the submaps it gives the model to ``log``."""
-    return subprocess.run([sys.executable, "-c", CHILD, point, str(log), "run", str(world), "--out", str(out), *ARGS,
+    return subprocess.run([sys.executable, str(KILL_POINTS), point, str(log), "run", str(world), "--out", str(out), *ARGS,
                            *extra], capture_output=True, text=True, timeout=600)
 
 
@@ -174,7 +94,10 @@ def assert_same_outputs(expected: Path, out: Path, **written_settings) -> None:
     assert not [p for p in out.rglob("*") if ".tmp" in p.name]
 
 
-@pytest.mark.parametrize("graph, point", [("keyframe", "model:5"), ("submap", "model:5"), ("keyframe", "graph:6"),
+# every kill point and both graphs in the fast set; the other graph at the same points is marked slow
+@pytest.mark.parametrize("graph, point", [("keyframe", "model:5"),
+                                          pytest.param("submap", "model:5", marks=pytest.mark.slow),
+                                          pytest.param("keyframe", "graph:6", marks=pytest.mark.slow),
                                           ("submap", "graph:6"), ("submap", "outputs:20"),
                                           ("keyframe", "recording:4")])
 def test_a_killed_run_resumes_to_the_same_bytes(world: Path, reference: dict, tmp_path: Path, graph: str,
