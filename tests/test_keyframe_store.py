@@ -79,6 +79,7 @@ def _run(world: Path, in_ram: int, out: Path):
     config.sim.profile = "vggt"
     config.submap.size = 6
     config.submap.keyframes_in_ram = in_ram
+    config.retrieval.kind = "orb"  # its keypoints and descriptors are spilled likewise
     pipeline = SLAMPipeline.from_config(config)
     result = pipeline.run(open_source(str(world)), progress=False)
     write_outputs(result, out, pipeline.resolved, source_name="world")
@@ -91,6 +92,9 @@ def test_a_run_that_spills_keyframes_writes_the_same_outputs(world: Path, tmp_pa
     assert everything.keyframe_store.spilled == 0
     assert bounded.keyframe_store.spilled == len(bounded.keyframes) - 4 > 10
     assert sum(not k.spilled for k in bounded.keyframes) == 4
+    assert everything.retrieval.features_in_ram() == len(everything.retrieval)
+    assert bounded.retrieval.features_in_ram() == 4 < len(bounded.retrieval)
+    assert bounded.ledger.edges == everything.ledger.edges and bounded.num_loops >= 1  # verified on spilled features
     for name in ["trajectory.txt", "map.ply", *sorted(p.name for p in (tmp_path / "all" / "keyframes").iterdir())]:
         folder = "keyframes/" if name.endswith(".npz") else ""
         assert (tmp_path / "all" / folder / name).read_bytes() == (tmp_path / "bounded" / folder / name).read_bytes(), name

@@ -88,6 +88,8 @@ def add_config_flags(parser: argparse.ArgumentParser, config: Any = None) -> Non
                 target = advanced
             else:
                 target = group
+            if section.flag(f.name) in parser._option_string_actions:
+                continue  # the verb's own flag of that name wins (eval's --workers: runs in parallel)
             dest = f"{name}.{f.name}" if name else f.name
             default = f"default: {value}" if value is not None else f"default: from the profile; exact: {section.field_default(f.name)}"
             help_text = (docs.get(f.name, "") + f" ({default})").strip().replace("%", "%%")
@@ -301,7 +303,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
 def cmd_models(args: argparse.Namespace) -> int:
     """Every model a run can name: parameters, licence, default weights and whether they are here."""
     from .models.hub import cached_locally
-    from .registry import frontend_entries
+    from .registry import frontend_entries, object_model_entries
 
     rows = [("name", "parameters", "licence", "default weights", "here", "what it is")]
     for entry in frontend_entries():
@@ -313,11 +315,18 @@ def cmd_models(args: argparse.Namespace) -> int:
         size = f"{count / 1e9:.2f} B" if count >= 1e9 else f"{count / 1e6:.1f} M" if count else "?"
         rows.append((entry.name, size,
                      entry.licence.split(" (")[0], entry.weights.repo_id, "yes" if found else "no", entry.description))
+    for entry in object_model_entries():
+        count = entry.parameters
+        size = f"{count / 1e9:.2f} B" if count >= 1e9 else f"{count / 1e6:.1f} M"
+        found = cached_locally(entry.weights.repo_id, entry.weights)
+        rows.append((entry.name, size, entry.licence, entry.weights.repo_id, "yes" if found else "no",
+                     f"{entry.description} ({entry.role})"))
     widths = [max(len(row[k]) for row in rows) for k in range(5)]
     for row in rows:
         print("  ".join(cell.ljust(width) for cell, width in zip(row, widths)) + "  " + row[5])
     print("\nRun one with --model NAME (or --model FILE / hub id: its weights name the model). Weights not here are "
           "downloaded on first use; licences in full: README.md, Models.")
+    print("pe-core-l14-336 and sam3 serve the object queries (run --objects, sl4slam query), not --model.")
     return 0
 
 
@@ -331,6 +340,32 @@ def cmd_ate(args: argparse.Namespace) -> int:
     scale = f"Sim(3) scale factor {result.scale:.4f}" if not args.no_scale else "SE(3), scale not corrected"
     print(f"ATE rmse {result.rmse:.6f} m  mean {result.mean:.6f} m  median {result.median:.6f} m  "
           f"max {result.max:.6f} m  ({result.num_poses} poses, {scale})")
+    return 0
+
+
+def query_models(model: str):
+    """The embedder called ``model`` (the one that made the result's keyframe embeddings) and the
+    text segmenter, for ``sl4slam query`` (``sl4slam.objects.query.default_models``; a test
+    replaces this function)."""
+    from .objects.query import default_models
+
+    return default_models(model)
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    import json
+
+    from .atomic import atomic_write_text
+    from .objects.query import check_query, open_for_query, query_result
+
+    check_query(args.text, args.top_k, args.threshold)  # every bad input before a model loads
+    result, embeddings = open_for_query(args.result)
+    embedder, segmenter = query_models(embeddings.model)
+    answer = query_result(result, args.text, embedder, segmenter, top_k=args.top_k, threshold=args.threshold)
+    print(answer.table())
+    if args.json:
+        atomic_write_text(Path(args.json), json.dumps(answer.to_json(points=args.points), indent=2) + "\n")
+        print(f"wrote {args.json}")
     return 0
 
 
@@ -429,6 +464,15 @@ def build_parser() -> argparse.ArgumentParser:
     ate_parser.add_argument("--max-diff", type=float, default=0.01, help="timestamp association tolerance (s)")
     ate_parser.add_argument("--no-scale", action="store_true", help="SE(3) instead of Sim(3) alignment")
     ate_parser.set_defaults(func=cmd_ate)
+
+    query = verbs.add_parser("query", help="find an object in a result's map by text (needs a run with --objects)")
+    query.add_argument("result", help="the --out folder of a run made with --objects")
+    query.add_argument("text", help='what to find, for example "red mug"')
+    query.add_argument("--top-k", type=int, default=5, help="keyframes searched: the most similar to the text")
+    query.add_argument("--threshold", type=float, default=0.5, help="lowest mask score kept (0 to 1)")
+    query.add_argument("--json", metavar="FILE", help="also write the answer as JSON (boxes in the map's frame and units)")
+    query.add_argument("--points", action="store_true", help="with --json: include each instance's points")
+    query.set_defaults(func=cmd_query)
     return parser
 
 

@@ -11,7 +11,8 @@ benchmark's instrumented graph) replaces the built one.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 from .backend import Backend
@@ -49,6 +50,8 @@ def build_stages(resolved: ResolvedConfig, frontend: Frontend | None = None, ret
         replay_dir: replay the frontend outputs recorded there instead of running the frontend.
         cache_dir: record the frontend's outputs there.
     """
+    if frontend is None and replay_dir is None and (resolved.workers > 1 or resolved.config.ray_address):
+        frontend = worker_frontend(resolved)
     frontend = build_frontend(resolved, frontend, replay_dir, cache_dir)
     if retrieval is _BUILD:
         retrieval = build_retrieval(resolved)
@@ -59,6 +62,32 @@ def build_stages(resolved: ResolvedConfig, frontend: Frontend | None = None, ret
         raise UserError(f"the {aligner.model} aligner measures projective transforms, which a "
                         f"{backend.kind} graph cannot hold; use a Sim(3) alignment model")
     return Stages(frontend, retrieval, aligner, backend)
+
+
+def worker_frontend(resolved: ResolvedConfig) -> Frontend:
+    """The run's frontend on ``workers`` local processes, or actors of the Ray cluster at
+    ``ray_address`` (``sl4slam.frontend.workers``); each builds its own with
+    :func:`frontend_for_worker`."""
+    from .frontend.workers import ProcessWorkers, RayWorkers, WorkerFrontend
+
+    config = resolved.config
+    factory = partial(frontend_for_worker, config)
+    workers = (RayWorkers(factory, config.workers, config.ray_address) if config.ray_address
+               else ProcessWorkers(factory, config.workers))
+    return WorkerFrontend(resolved.frontend.build(resolved), workers)
+
+
+def frontend_for_worker(config: SLAMConfig, index: int) -> Frontend:
+    """The frontend worker ``index`` builds from the run's settled ``config``: on a machine with
+    several GPUs, on GPU ``index`` modulo their count."""
+    if config.device.startswith("cuda"):
+        import torch
+
+        count = torch.cuda.device_count()
+        if count > 1:
+            config = replace(config, device=f"cuda:{index % count}")
+    resolved = resolve(config)
+    return resolved.frontend.build(resolved)
 
 
 def build_retrieval(resolved: ResolvedConfig) -> Retrieval | None:

@@ -26,6 +26,7 @@ from .io.settings import SourceConfig
 from .keyframes import KeyframeConfig
 from .localize import LocalizationConfig
 from .loops import LoopConfig
+from .objects.settings import ObjectsConfig
 from .result.settings import OutputConfig
 from .retrieval.settings import FalseLoopConfig, RetrievalConfig
 from .section import Section, setting
@@ -34,8 +35,8 @@ from .upgrade import UpgradeConfig
 
 __all__ = ["SLAMConfig", "Section", "setting", "sections", "config_to_dict", "config_from_dict", "load_config",
            "read_config_file", "AlignmentConfig", "BackendConfig", "FalseLoopConfig", "KeyframeConfig",
-           "LocalizationConfig", "LoopConfig", "ModelConfig", "OutputConfig", "RetrievalConfig", "SimulatorConfig",
-           "SourceConfig", "SubmapConfig", "UpgradeConfig", "SIM_EXACT", "SIM_PROFILES", "SIM_PROFILE_VALUES",
+           "LocalizationConfig", "LoopConfig", "ModelConfig", "ObjectsConfig", "OutputConfig", "RetrievalConfig",
+           "SimulatorConfig", "SourceConfig", "SubmapConfig", "UpgradeConfig", "SIM_EXACT", "SIM_PROFILES", "SIM_PROFILE_VALUES",
            "apply_sim_profile", "profile_values"]
 
 
@@ -62,6 +63,18 @@ class SLAMConfig(Section):
     this one (one worker, at most one submap waiting; ``sl4slam.schedule``). The results are the same
     as one submap after the other, byte for byte; it needs ``--tau-interval`` >= 1 (the default, 2),
     so that a loop frame never comes from the submap still being worked on."""
+    workers: int = setting(1, advanced=True, check=lambda v: v >= 1, allowed="at least 1")
+    """Model copies that reconstruct windows ahead of the graph, on local worker processes (or as
+    actors on the Ray cluster of ``ray_address``); the graph takes the windows in order, and the
+    trajectory and map are the same as with one, byte for byte (``sl4slam.schedule.AheadScheduler``).
+    At most ``tau_interval`` + 1 windows can be ahead (a loop frame must be stored before its window
+    is assembled). File sources only: a live camera keeps one model in the run's own process. A
+    frontend handed to the library directly (``SLAMPipeline.from_config(config, frontend=...)``) is
+    called from that many threads at once instead."""
+    ray_address: str = setting("", advanced=True)
+    """Run the model's windows as ``workers`` actors on this existing Ray cluster (``host:6379``,
+    ``ray://host:10001`` or ``auto``; one GPU per actor where the cluster has GPUs); "" runs them
+    locally. Needs ``sl4slam[cluster]``; every node needs sl4slam and the model weights."""
     source: SourceConfig = setting(factory=SourceConfig)
     keyframes: KeyframeConfig = setting(factory=KeyframeConfig)
     submap: SubmapConfig = setting(factory=SubmapConfig)
@@ -75,6 +88,7 @@ class SLAMConfig(Section):
     output: OutputConfig = setting(factory=OutputConfig)
     upgrade: UpgradeConfig = setting(factory=UpgradeConfig)
     localize: LocalizationConfig = setting(factory=LocalizationConfig)
+    objects: ObjectsConfig = setting(factory=ObjectsConfig)
 
     def validate(self) -> None:
         """Check every section, then the settings that depend on each other (the frontend's name

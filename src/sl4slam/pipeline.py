@@ -60,7 +60,7 @@ from .schedule import SequentialScheduler, make_scheduler
 from .source_knowledge import SourceKnowledge, source_problem
 from .submap import StoredKeyframe
 from .types import Aligner, Alignment, Frame, FrameSource, Frontend, LoopCandidate, Retrieval, SubmapPrediction
-from .window import (DenseSubmap, FrontendOutcome, SharedFrames, SubmapInput, prediction_problem,
+from .window import (Anticipation, DenseSubmap, FrontendOutcome, SharedFrames, SubmapInput, prediction_problem,
                      recorded_match_ratio)
 
 log = logging.getLogger("sl4slam")
@@ -95,6 +95,9 @@ class SLAMPipeline:
         on_submap: called as ``on_submap(pipeline, submap_id)`` after every processed submap.
         keyframe_folder: where keyframes beyond ``submap.keyframes_in_ram`` keep their arrays
             (``sl4slam.keyframe_store``); ``None``: a temporary folder.
+        objects: what embeds each stored keyframe's image for object queries
+            (``sl4slam.objects.embedder.KeyframeEmbedder``); by default made from the ``[objects]``
+            settings when ``--objects`` is on; ``None``: no embeddings.
 
     Example (:meth:`from_config` resolves the settings and builds the stages)::
 
@@ -107,7 +110,7 @@ class SLAMPipeline:
 
     def __init__(self, resolved: ResolvedConfig, stages: Stages,
                  on_submap: Callable[["SLAMPipeline", int], None] | None = None,
-                 keyframe_folder: str | os.PathLike | None = None) -> None:
+                 keyframe_folder: str | os.PathLike | None = None, objects: Any = _BUILD) -> None:
         self.resolved = resolved
         self.config = resolved.config
         self.frontend: Frontend = stages.frontend
@@ -123,6 +126,9 @@ class SLAMPipeline:
         self.selector = self.config.keyframes.setup()
         self.on_submap = on_submap
         self.keyframe_store = KeyframeStore(self.config.submap.keyframes_in_ram, keyframe_folder)
+        if hasattr(self.retrieval, "spill_features"):  # the retrieval's per-keyframe features likewise
+            self.retrieval.spill_features(os.path.join(keyframe_folder, "retrieval") if keyframe_folder is not None
+                                          else None, self.config.submap.keyframes_in_ram)
         self.ledger = RunLedger()
         self.shared = SharedFrames()
         self.stop_requested = False
@@ -130,11 +136,15 @@ class SLAMPipeline:
         self.colors: SourceColors | None = None  # the keyframes' colours, re-read from the source
         self._next_submap_id = 0  # submap ids handed out (one may be in the model)
         self._input: _Input | None = None
+        if objects is _BUILD:
+            objects = self.config.objects.setup(resolved.device) if self.config.objects.enabled else None
+        self.objects = objects
 
     @classmethod
     def from_config(cls, config: SLAMConfig, frontend: Frontend | None = None, retrieval: Any = _BUILD,
                     aligner: Aligner | None = None, backend: Backend | None = None,
-                    on_submap: Callable[["SLAMPipeline", int], None] | None = None) -> "SLAMPipeline":
+                    on_submap: Callable[["SLAMPipeline", int], None] | None = None,
+                    objects: Any = _BUILD) -> "SLAMPipeline":
         """The pipeline of the user's settings (resolved here: the entry point of a library run).
 
         Args:
@@ -142,10 +152,10 @@ class SLAMPipeline:
             frontend, retrieval, aligner, backend: stages that replace the ones the config names
                 (``retrieval=None``: no loop closure; ``sl4slam.compose.build_stages``). A frontend
                 given here is resolved with its own capabilities.
-            on_submap: see the class.
+            on_submap, objects: see the class.
         """
         resolved = resolve(config, capabilities=frontend.capabilities if frontend is not None else None)
-        return cls(resolved, build_stages(resolved, frontend, retrieval, aligner, backend), on_submap)
+        return cls(resolved, build_stages(resolved, frontend, retrieval, aligner, backend), on_submap, objects=objects)
 
     # ------------------------------------------------------------------ what the run holds
     @property
@@ -206,13 +216,18 @@ class SLAMPipeline:
 
         Raises ``UserError`` for a source the frontend cannot use (checked before any frame is read).
         """
-        problem = source_problem(source, self.frontend.capabilities, self.frontend.name, self.config.source)
+        problem = source_problem(source, self.frontend.capabilities, self.frontend.name, self.config.source,
+                                 workers=self.resolved.workers, ray_address=self.config.ray_address)
         if problem:
             raise UserError(problem)
+        if self.resolved.workers > 1 and self.retrieval is not None and not hasattr(self.retrieval, "rewind"):
+            raise UserError(f"--workers {self.resolved.workers} hands windows on before their forwards, which needs a "
+                            f"retrieval that can rewind (mark/rewind); {self.retrieval.name} cannot: use --workers 1")
         self.knowledge = SourceKnowledge(self.resolved, self.frontend, source)
         self.colors = SourceColors(source, self.frontend)
         reporter = Progress(len(source), enabled=progress, every=self.config.output.progress_every, per_submap=True)
-        self._input = _Input(source, make_scheduler(self, overlap=self.resolved.overlap), reporter)
+        self._input = _Input(source, make_scheduler(self, overlap=self.resolved.overlap, ahead=self.resolved.workers,
+                                                    tau_interval=self.config.retrieval.tau_interval), reporter)
 
     def feed(self, frame: Frame) -> bool:
         """Take the next frame of the source given to :meth:`start`: keyframe selection, and once
@@ -351,9 +366,64 @@ class SLAMPipeline:
         outcome.seconds = time.perf_counter() - start
         return outcome
 
-    def accept(self, work: SubmapInput, outcome: FrontendOutcome) -> SubmapPrediction | None:
+    def _hand_on(self, work: SubmapInput) -> None:
+        """What an accepted submap hands on to the next ones: the retrieval holds its keyframes, and
+        the next window shares its opening frames."""
+        self.shared.next = [work.frames[slot] for slot in work.opening_slots(self.config.submap.overlap)]
+        start = time.perf_counter()
+        described = self._described()
+        if self.retrieval is not None:
+            self.retrieval.add(work.new_frames, work.submap_id)
+        work.add_retrieval_seconds(start, self._described() - described)
+
+    def anticipate(self, work: SubmapInput) -> Anticipation:
+        """Hand ``work`` on as if its forward will succeed, before it has run, so that the windows
+        after it can be assembled while the model works (``sl4slam.schedule.AheadScheduler``); then
+        :meth:`accept` it with ``anticipated=True``. Returns what :meth:`withdraw` needs to undo it
+        (and every window assembled after it) should the forward fail. Needs a retrieval with
+        ``mark``/``rewind`` (``sl4slam.types.Retrieval``)."""
+        mark = self.retrieval.mark() if self.retrieval is not None else None
+        anticipation = Anticipation(work.submap_id, mark, list(self.shared.next))
+        self._hand_on(work)
+        return anticipation
+
+    def reshare(self, works: Sequence[SubmapInput]) -> list[SubmapInput]:
+        """After the graph dropped a submap: ``works``, the windows handed on after it in order, each
+        opened by the frames the one before hands on, the first by the frames the graph holds
+        (:attr:`shared` ``.next``, set by :meth:`integrate`). A window whose frames stay the same is
+        returned as it is (and so is every one after it); the next window shares the last one's
+        opening frames again."""
+        shared, out = list(self.shared.next), list(works)
+        overlap = self.config.submap.overlap
+        for position, work in enumerate(works):
+            if [f.index for f in work.frames[: work.first_new]] == [f.index for f in shared]:
+                break
+            out[position] = work.with_shared(shared)
+            shared = [out[position].frames[slot] for slot in out[position].opening_slots(overlap)]
+        if out:
+            last = out[-1]
+            self.shared.next = [last.frames[slot] for slot in last.opening_slots(overlap)]
+        return out
+
+    @property
+    def next_submap_id(self) -> int:
+        """The id the next :meth:`assemble` gives."""
+        return self._next_submap_id
+
+    def withdraw(self, anticipation: Anticipation) -> None:
+        """Undo :meth:`anticipate` of a submap whose forward failed, and the assembly of every window
+        after it: the retrieval, the shared frames and the next submap id are as they were before
+        it was handed on (its own window stays assembled)."""
+        if self.retrieval is not None:
+            self.retrieval.rewind(anticipation.retrieval)
+        self.shared.next = anticipation.shared
+        self._next_submap_id = anticipation.submap_id + 1
+
+    def accept(self, work: SubmapInput, outcome: FrontendOutcome, anticipated: bool = False) -> SubmapPrediction | None:
         """Take the frontend's outcome: the prediction, whose keyframes the retrieval now holds and
-        whose last keyframe the next submap shares; or ``None`` when it failed (see the module doc)."""
+        whose last keyframe the next submap shares; or ``None`` when it failed (see the module doc).
+        ``anticipated``: :meth:`anticipate` handed it on already (and :meth:`withdraw` undid that if
+        the forward failed)."""
         work.seconds["frontend"] = outcome.seconds
         for candidate, reason in work.unreadable:
             self._reject_loop(candidate, work.submap_id, reason)
@@ -361,12 +431,8 @@ class SLAMPipeline:
             raise outcome.error  # its line, at once
         if outcome.problem is None:
             self.ledger.failures_in_a_row = 0
-            self.shared.next = [work.frames[slot] for slot in work.opening_slots(self.config.submap.overlap)]
-            start = time.perf_counter()
-            described = self._described()
-            if self.retrieval is not None:
-                self.retrieval.add(work.new_frames, work.submap_id)
-            work.add_retrieval_seconds(start, self._described() - described)
+            if not anticipated:
+                self._hand_on(work)
             return outcome.prediction
         self._drop(work, "frontend failed")
         self.ledger.frontend_failed(work.submap_id, outcome.problem, [f.index for f in work.new_frames])
@@ -395,6 +461,10 @@ class SLAMPipeline:
                 self.close_loops(work, dense)
             with timer("store"):
                 self.store(work, dense)
+            if self.objects is not None:
+                with timer("objects"):
+                    self.objects.add([work.frames[s].index for s in work.new_slots],
+                                     [work.frames[s].rgb for s in work.new_slots])
         else:
             self.shared.next = self.shared.held  # the next submap shares the last frame the graph holds
         work.seconds.update(timer.seconds)

@@ -116,6 +116,27 @@ class GraphEntry:
     groups: tuple[str, ...]
 
 
+@dataclass(frozen=True)
+class ObjectModelEntry:
+    """A model of the object queries (``--objects``, ``sl4slam query``), for ``sl4slam models``.
+
+    Attributes:
+        name: its name ("pe-core-l14-336", "sam3").
+        description: one line on what it does.
+        weights: where its released weights live.
+        licence: the weights' licence, in words.
+        parameters: parameters of the full-size model.
+        role: what the queries use it for ("image/text embedder", "text segmenter").
+    """
+
+    name: str
+    description: str
+    weights: "WeightsSource"
+    licence: str
+    parameters: int
+    role: str = ""
+
+
 # The catalog: a line per stage, in the order listings and the command line's choices show them.
 
 _FRONTENDS: dict[str, FrontendEntry | str] = {
@@ -147,7 +168,12 @@ _GRAPHS: dict[str, GraphEntry | str] = {
     "keyframe": "sl4slam.backend.keyframe:registry_entry",
 }
 
-Entry = TypeVar("Entry", FrontendEntry, RetrievalEntry, AlignerEntry, GraphEntry)
+_OBJECT_MODELS: dict[str, ObjectModelEntry | str] = {
+    "pe-core-l14-336": "sl4slam.objects.embedder:registry_entry",
+    "sam3": "sl4slam.objects.sam3:registry_entry",
+}
+
+Entry = TypeVar("Entry", FrontendEntry, RetrievalEntry, AlignerEntry, GraphEntry, ObjectModelEntry)
 
 
 def load_entry(reference: str) -> Any:
@@ -218,6 +244,11 @@ def frontend_entry(name: str) -> FrontendEntry:
         raise UserError(f"--frontend (config key frontend) '{name}' is an unknown model or frontend (also --model); available: "
                         f"{', '.join(_FRONTENDS)} (sl4slam models lists them), or a model's weights file or hub id")
     return _entry(_FRONTENDS, name)
+
+
+def object_model_entries() -> list[ObjectModelEntry]:
+    """The models of the object queries (each loaded; their code, and torch, load only when used)."""
+    return [_entry(_OBJECT_MODELS, name) for name in _OBJECT_MODELS]
 
 
 def frontend_entries() -> list[FrontendEntry]:

@@ -97,6 +97,7 @@ class ResolvedConfig:
         attention_check: whether loops pass the attention check.
         device: where the models run ("cpu", "cuda", "cuda:N").
         overlap: whether the next submap's model runs while the graph works on this one.
+        workers: windows the model may work on at once (``SLAMConfig.workers``).
         notes: why each "auto" became what it is, one line each.
         intrinsics: the known intrinsics the settings give (numbers or a file), ``None`` otherwise.
         intrinsics_from_source: the source's own calibration is the known intrinsics
@@ -118,6 +119,7 @@ class ResolvedConfig:
     notes: tuple[str, ...] = ()
     intrinsics: KnownIntrinsics | None = None
     intrinsics_from_source: bool = False
+    workers: int = 1
 
     @property
     def needs_ground_truth(self) -> bool:
@@ -184,10 +186,31 @@ def resolve(config: SLAMConfig, capabilities: FrontendCapabilities | None = None
     if settled.overlap and not overlap:
         notes.append("overlap: off (--tau-interval 0 lets a loop frame come from the submap still being worked on)")
     settled.overlap = overlap
+    workers = _workers(settled, overlap, retrieval, notes)
     if settled.false_loops.rate > 0 and retrieval is RetrievalKind.NONE:
         notes.append("false loops: none are injected (there is no retrieval to propose loops)")
     return ResolvedConfig(settled, entry, capabilities, group, graph, alignment, retrieval, metric_upgrade,
-                          complete_links, attention, device, overlap, tuple(notes), known, intrinsics_from_source)
+                          complete_links, attention, device, overlap, tuple(notes), known, intrinsics_from_source,
+                          workers)
+
+
+def _workers(settled: SLAMConfig, overlap: bool, retrieval: RetrievalKind, notes: list[str]) -> int:
+    """Windows the model may work on at once (``workers``); refuses settings that need the model in
+    the run's own process, one after the other."""
+    workers = settled.workers
+    if workers == 1 and not settled.ray_address:
+        return 1
+    what = f"--workers {workers}" if workers > 1 else "--ray-address"
+    if not overlap:
+        why = ("--tau-interval 0 lets a loop frame come from the submap still being worked on"
+               if retrieval is not RetrievalKind.NONE and settled.retrieval.tau_interval == 0
+               else "--no-overlap forbids (it runs one submap after the other)")
+        raise UserError(f"{what} runs windows ahead of the graph, which {why}; drop {what} or "
+                        "use --tau-interval 1 or more with the overlap on")
+    if retrieval is not RetrievalKind.NONE and workers > settled.retrieval.tau_interval + 1:
+        notes.append(f"workers: at most {settled.retrieval.tau_interval + 1} windows can be ahead of the graph "
+                     f"(--tau-interval {settled.retrieval.tau_interval} + 1); the other workers wait")
+    return workers
 
 
 def _frontend(settled: SLAMConfig, notes: list[str]) -> FrontendEntry:
@@ -324,7 +347,8 @@ def _attention(settled: SLAMConfig, graph: GraphDesign, retrieval: RetrievalKind
 
 def _device(settled: SLAMConfig, entry: FrontendEntry, retrieval: RetrievalKind) -> str:
     """The models' device; torch is imported only when a model runs."""
-    uses_models = entry.weights is not None or retrieval_entry(retrieval.value).uses_device
+    uses_models = (entry.weights is not None or retrieval_entry(retrieval.value).uses_device
+                   or settled.objects.enabled)  # --objects runs an image embedder
     if not uses_models:
         settled.device = "cpu" if settled.device == "auto" else settled.device
         return settled.device

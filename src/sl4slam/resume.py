@@ -45,10 +45,10 @@ MANIFEST = "resume.json"
 
 FORMAT = {"name": "sl4slam-resume", "version": 1}
 
-UNCHECKED_SETTINGS = ("output.", "localize.", "submap.keyframes_in_ram")
+UNCHECKED_SETTINGS = ("output.", "localize.", "submap.keyframes_in_ram", "workers", "ray_address", "overlap")
 """Settings (a key, or a section's prefix) that may differ between a killed run and its resumption:
-they decide what is written and how, or where memory lives, never what a submap's model is given
-or what the graph computes."""
+they decide what is written and how, where memory lives or where and when the model runs, never
+what a submap's model is given or what the graph computes."""
 
 _SAMPLES = 5
 _TEMPORARY = re.compile(r"^\..+\.\d+\.tmp(\.[^.]+)?$")  # what sl4slam.atomic writes before its rename
@@ -160,7 +160,8 @@ def check_settings(manifest: dict[str, Any], resolved: ResolvedConfig, out: Path
     """Raise a one-line ``UserError`` naming the first setting (in the tree's order) whose settled value
     differs from the killed run's (:func:`checked_settings`)."""
     recorded, current = manifest.get("settings", {}), checked_settings(resolved)
-    for key in list(current) + [k for k in recorded if k not in current]:
+    extra = [k for k in recorded if k not in current and not k.startswith(UNCHECKED_SETTINGS)]
+    for key in list(current) + extra:
         if recorded.get(key, "(absent)") != current.get(key, "(absent)"):
             section, _, name = key.rpartition(".")
             owner = getattr(resolved.config, section, None) if section else resolved.config

@@ -204,7 +204,8 @@ def check_before_frames(source, resolved: ResolvedConfig, replay_dir, all_frames
     if all_frames and live:
         raise UserError("--all-frames needs a re-readable source (a video file or a folder): a live source keeps "
                         "only its keyframes; record the stream to a file first")
-    problem = source_problem(source, resolved.capabilities, resolved.frontend.name, resolved.config.source)
+    problem = source_problem(source, resolved.capabilities, resolved.frontend.name, resolved.config.source,
+                             workers=resolved.workers, ray_address=resolved.config.ray_address)
     if problem:
         raise UserError(problem)
     from_source(source, resolved.intrinsics, resolved.intrinsics_from_source)  # one that cannot be used: one line now
@@ -238,12 +239,17 @@ def say_cpu_cost(resolved: ResolvedConfig, source_frames: int | None, stream=Non
 def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig, replay_dir, progress: bool, on_submap,
          view, all_frames: bool, keep_viewer: bool, manifest: dict | None = None) -> dict:
     from .compose import build_stages
+    from .frontend.workers import close_workers
     from .pipeline import SLAMPipeline
     from .result.outputs import write_checkpoint, write_outputs
 
     config = resolved.config
     recording = manifest is not None or (config.output.resumable and replay_dir is None and not live)
     try:
+        if config.objects.enabled:  # the embedder's files before any frame; its model loads beside the frontend's
+            from .objects.embedder import check_embedder_files
+
+            check_embedder_files(config.objects)
         check_before_frames(source, resolved, replay_dir, all_frames, live)
         identity = None
         if recording:  # five frames read, before the model is loaded
@@ -257,6 +263,7 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
         cache_dir = out / "frontend_cache" if config.output.cache_frontend and not recording else None
         stages = build_stages(resolved, replay_dir=replay_dir, cache_dir=cache_dir)
         stages.frontend.prepare()
+        objects = config.objects.setup(resolved.device) if config.objects.enabled else None  # its weights: before any frame
         resumer = _record_for_resume(stages, out, resolved, identity, manifest) if recording else None
     except UserError:
         _remove_if_created(out, existed)
@@ -270,7 +277,7 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
     if view is not None:
         from .viewer import LiveViewer
 
-        viewer = LiveViewer(view)
+        viewer = LiveViewer(view, objects=config.objects.enabled)  # with --objects: the "Find object" box
     callbacks = [c for c in (on_submap, viewer.on_submap if viewer else None,
                              _live_status(source) if live and progress else None) if c]
 
@@ -281,10 +288,12 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
             callback(pipeline, submap_id)
         if time.perf_counter() - last_write[0] >= config.output.checkpoint_seconds:
             write_checkpoint(pipeline.snapshot(), out, resolved, {"source": source.name})
+            if pipeline.objects is not None:
+                pipeline.objects.write(out)
             last_write[0] = time.perf_counter()
 
     keyframe_folder = out / ".keyframe_store"  # older keyframes' arrays (submap.keyframes_in_ram); removed below
-    pipeline = SLAMPipeline(resolved, stages, on_submap=checkpoint, keyframe_folder=keyframe_folder)
+    pipeline = SLAMPipeline(resolved, stages, on_submap=checkpoint, keyframe_folder=keyframe_folder, objects=objects)
     if live:
         # the source keeps exactly the frames the pipeline selected as keyframes (loop closures re-read them)
         source.keyframe_counter = lambda: pipeline.selector.num_keyframes
@@ -302,6 +311,7 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
             resumable = resumer is not None and resumer.recording
             if resumer is not None:
                 resumer.close()  # a forward left running is not recorded: no write cut short at exit
+            close_workers(stages.frontend)  # model workers (--workers, --ray-address), if any
     finished = len({k.submap_id for k in pipeline.keyframes})
     if pipeline.stop_requested and status == "complete":
         status, stop_reason = "interrupted", f"interrupted after {finished} finished submap(s)"
@@ -315,6 +325,8 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
     extra = {"stop_reason": stop_reason} if stop_reason else {}
     if live:
         extra["live"] = {"delivered": source.delivered, "dropped": source.dropped, "fps": source.fps}
+    if pipeline.objects is not None:
+        extra["objects"] = pipeline.objects.record(out)
     summary = write_outputs(result, out, resolved, source_name=source.name, skipped=source.skipped, status=status,
                             extra=extra or None)
     if all_frames and status == "complete":
@@ -333,7 +345,7 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
             print(resume_line(len(resumer.replayed), len(resumer.reconstructed), replayed_until[0] - start
                               if resumer.replayed else 0.0), file=sys.stderr, flush=True)
     if viewer is not None:
-        viewer.finish(result, summary)
+        viewer.finish(result, summary, folder=out)  # a query after the run reads the folder
         if keep_viewer:
             print(f"viewer stays open at http://{view.host}:{viewer.viewer.port}; Ctrl-C to close", flush=True)
             viewer.serve_until_stopped()

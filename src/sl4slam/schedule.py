@@ -30,7 +30,7 @@ from collections import deque
 from typing import Protocol, Sequence
 
 from .types import Frame, SubmapPrediction
-from .window import FrontendOutcome, SubmapInput
+from .window import Anticipation, FrontendOutcome, SubmapInput
 
 
 class SubmapSteps(Protocol):
@@ -55,9 +55,26 @@ class SubmapSteps(Protocol):
         """``work`` on the current shared frame (after the submap before it was dropped)."""
 
 
-def make_scheduler(pipeline: SubmapSteps, overlap: bool) -> "SequentialScheduler":
-    """The scheduler of a run: overlapped when ``overlap`` (``SLAMConfig.overlap``, settled by
+    def anticipate(self, work: SubmapInput) -> Anticipation:
+        """R's hand-on (retrieval and shared frames) before F has run; see :class:`AheadScheduler`."""
+
+    def withdraw(self, anticipation: Anticipation) -> None:
+        """Undo :meth:`anticipate` (and the assembly of every window after it)."""
+
+    def reshare(self, works: Sequence[SubmapInput]) -> list[SubmapInput]:
+        """The windows handed on after a dropped submap, opened by the frames the graph holds."""
+
+    @property
+    def next_submap_id(self) -> int:
+        """The id the next :meth:`assemble` gives."""
+
+
+def make_scheduler(pipeline: SubmapSteps, overlap: bool, ahead: int = 1, tau_interval: int = 1) -> "SequentialScheduler":
+    """The scheduler of a run: ``ahead`` > 1 windows in the model at once (:class:`AheadScheduler`,
+    ``SLAMConfig.workers``), else overlapped when ``overlap`` (``SLAMConfig.overlap``, settled by
     ``sl4slam.resolve``), else sequential."""
+    if ahead > 1:
+        return AheadScheduler(pipeline, ahead, tau_interval)
     return OverlappedScheduler(pipeline) if overlap else SequentialScheduler(pipeline)
 
 
@@ -132,8 +149,12 @@ class OverlappedScheduler(SequentialScheduler):
             pass
 
     def drain(self) -> None:
-        while self.running is not None or self.waiting:
+        while self._pending():
             self._advance(block=True)
+
+    def _pending(self) -> bool:
+        """Whether a submitted submap is not yet done."""
+        return self.running is not None or bool(self.waiting)
 
     def close(self) -> None:
         """Forget what is left (after an error or Ctrl-C): a forward still running finishes in its
@@ -169,3 +190,101 @@ class OverlappedScheduler(SequentialScheduler):
         stale = self.running
         stale.result()  # its outcome belongs to frames that are no longer the submap's
         self.running = _Forward(self.pipeline, self.pipeline.reframe(stale.work))
+
+
+class _Window:
+    """An assembled, handed-on window whose forward runs in a thread (that waits on a worker)."""
+
+    def __init__(self, pipeline: SubmapSteps, work: SubmapInput, anticipation: Anticipation) -> None:
+        self.work = work
+        self.anticipation = anticipation
+        self.forward = _Forward(pipeline, work)
+
+    def restart(self, pipeline: SubmapSteps, work: SubmapInput) -> None:
+        """Run the forward again on ``work`` (the same submap opened by other frames)."""
+        self.work = work
+        self.forward = _Forward(pipeline, work)
+
+
+class AheadScheduler(OverlappedScheduler):
+    """Up to ``ahead`` windows in the model at once (on worker processes or a Ray cluster, through
+    the frontend), the graph taking them in order; the results are those of one submap after the
+    other, byte for byte.
+
+    A window's step R (the retrieval holds its keyframes, the next window shares its last one)
+    depends only on its frames, as long as its forward succeeds: so it is taken as soon as the window
+    is assembled (``anticipate``), and the next window can be assembled at once. A forward that
+    fails is rare; then R is undone (``withdraw``: the retrieval rewinds to its mark) and the windows
+    assembled after it are assembled again. A window also needs every submap that may lend it a loop
+    frame to be stored: those at least ``tau_interval`` + 1 older. So at most ``tau_interval`` + 1
+    windows are ever ahead of the graph, whatever ``ahead`` is. When the graph drops a submap, the
+    windows after it that share its frame are opened by the frame the graph holds and their forwards
+    run again (``reshare``).
+
+    Attributes:
+        waiting: batches of new keyframes selected but not yet assembled.
+        flight: the assembled windows, in submap order (the first is the next the graph takes).
+        settled: every submap up to this id is integrated or failed.
+    """
+
+    def __init__(self, pipeline: SubmapSteps, ahead: int, tau_interval: int) -> None:
+        super().__init__(pipeline)
+        self.ahead = max(1, int(ahead))
+        self.tau_interval = int(tau_interval)
+        self.flight: deque[_Window] = deque()
+        self.settled = -1
+
+    def _pending(self) -> bool:
+        return bool(self.flight) or bool(self.waiting)
+
+    def close(self) -> None:
+        """Forget what is left: forwards still running finish in their threads, unread."""
+        self.flight.clear()
+        self.waiting.clear()
+
+    def _may_assemble(self) -> bool:
+        """Whether the next window may be assembled now: a worker is free, and every submap that may
+        lend it a loop frame is settled."""
+        following = self.pipeline.next_submap_id
+        return bool(self.waiting) and len(self.flight) < self.ahead and following - 1 - self.tau_interval <= self.settled
+
+    def _launch(self) -> None:
+        work = self.pipeline.assemble(self.waiting.popleft())
+        self.flight.append(_Window(self.pipeline, work, self.pipeline.anticipate(work)))
+
+    def _advance(self, block: bool) -> bool:
+        """One step of the schedule; whether anything happened."""
+        if self._may_assemble():
+            self._launch()
+            return True
+        if not self.flight or not (block or self.flight[0].forward.done()):
+            return False
+        head = self.flight.popleft()
+        outcome = head.forward.result()
+        if outcome.problem is not None:
+            self._failed(head, outcome)
+            return True
+        prediction = self.pipeline.accept(head.work, outcome, anticipated=True)  # R(k), its ledger part
+        while self._may_assemble():  # the next windows go to the model while S(k) runs
+            self._launch()
+        if prediction is not None and not self.pipeline.integrate(head.work, prediction):
+            self._dropped()
+        self.settled = head.work.submap_id
+        return True
+
+    def _failed(self, head: _Window, outcome: FrontendOutcome) -> None:
+        """The forward of ``head`` failed: undo its hand-on, put the windows after it back in line
+        (assembled again later, on the retrieval without it), then book the failure."""
+        later, self.flight = list(self.flight), deque()
+        self.pipeline.withdraw(head.anticipation)
+        self.waiting.extendleft(reversed([window.work.new_frames for window in later]))
+        self.settled = head.work.submap_id
+        self.pipeline.accept(head.work, outcome, anticipated=True)
+
+    def _dropped(self) -> None:
+        """The graph dropped the submap just integrated: the windows after it are opened by the frames
+        the graph holds (those whose frames change run their forwards again)."""
+        changed = self.pipeline.reshare([window.work for window in self.flight])
+        for window, work in zip(self.flight, changed):
+            if work is not window.work:
+                window.restart(self.pipeline, work)

@@ -33,10 +33,14 @@ log = logging.getLogger("sl4slam.pipeline")
 
 
 def source_problem(source: FrameSource, capabilities: FrontendCapabilities, frontend_name: str,
-                   settings: SourceConfig | None = None) -> str | None:
+                   settings: SourceConfig | None = None, workers: int = 1, ray_address: str = "") -> str | None:
     """Why a run cannot use ``source`` with this frontend and these ``[source]`` settings (too few
-    frames, no ground truth for a frontend that reads it, no depth images for the sensor's scale),
-    or ``None``; checked before any frame is read."""
+    frames, no ground truth for a frontend that reads it, no depth images for the sensor's scale,
+    model workers with a live camera), or ``None``; checked before any frame is read."""
+    if getattr(source, "live", False) and (workers > 1 or ray_address):
+        what = f"--workers {workers}" if workers > 1 else "--ray-address"
+        return (f"{what} runs the model's windows ahead of the graph, which needs a file source; {source.name} is "
+                f"a live camera (it keeps one model in this process): drop {what}, or record the stream to a file")
     if len(source) < 2:
         return f"{source.name}: {len(source)} frame(s) found; SLAM needs at least 2 frames"
     if capabilities.needs_ground_truth and not source.has_ground_truth:

@@ -203,6 +203,10 @@ class Retrieval(Protocol):
 
     def query(self, frames: Sequence[Frame], submap_id: int, max_results: int) -> list[LoopCandidate]: ...
 
+    # Optional, for running the model's windows ahead of the graph (``sl4slam.schedule``):
+    # ``mark() -> token`` and ``rewind(token)`` forget what was added and asked since the mark, so
+    # that the same queries give the same answers again.
+
 
 @dataclass
 class Alignment:

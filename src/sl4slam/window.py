@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -99,6 +99,21 @@ class SubmapInput:
         """The same window opened by ``shared`` instead: the same new keyframes and loop frames."""
         return SubmapInput(self.submap_id, list(shared) + self.frames[self.first_new:], len(shared), self.num_new,
                            self.loops, self.unreadable, dict(self.seconds), list(self.loop_widths))
+
+
+@dataclass
+class Anticipation:
+    """What handing a window on before its forward ran changed (``SLAMPipeline.anticipate``), to undo it.
+
+    Attributes:
+        submap_id: the window's submap id.
+        retrieval: the retrieval's mark before the window's keyframes were added (``None``: no retrieval).
+        shared: the shared frames the next window had before.
+    """
+
+    submap_id: int
+    retrieval: Any
+    shared: list[Frame]
 
 
 @dataclass

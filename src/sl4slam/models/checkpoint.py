@@ -150,7 +150,7 @@ def read_checkpoint(path: str | os.PathLike, what: str, fix: str) -> tuple[dict[
     """Tensors and metadata of a ``.safetensors`` or ``.pt`` / ``.pth`` / ``.ckpt`` file, on the CPU.
 
     Returns ``(state_dict, metadata)``: the tensors (a ``.pt`` payload's ``"model"`` or
-    ``"state_dict"`` entry when it has one: VGGT's and Lightning's forms), and the safetensors
+    ``"state_dict"`` or ``"weights"`` entry when it has one: VGGT's, Lightning's and PE's forms), and the safetensors
     metadata (strings) or the ``.pt`` payload's other top-level entries. ``.pt`` files are
     memory-mapped where torch can.
 
@@ -189,7 +189,7 @@ def read_checkpoint(path: str | os.PathLike, what: str, fix: str) -> tuple[dict[
     if not isinstance(payload, dict):
         raise WeightsFileError(f"{what} weights {path} do not hold a state dict (found {type(payload).__name__}); {fix}")
     tensors: Mapping = payload
-    for key in ("model", "state_dict"):
+    for key in ("model", "state_dict", "weights"):  # "weights": the Perception Encoder releases
         if isinstance(payload.get(key), dict):
             tensors = payload[key]
             break

@@ -74,6 +74,8 @@ FORMAT_NAME = "sl4slam-result"
 SUPPORTED_VERSIONS = (1, 2, 3)
 KEYFRAMES_OPTION = "--keyframes compact"
 """The run option that writes ``keyframes/`` (named in the error of a tool that needs it)."""
+_OBJECT_QUERY = "sl4slam.objects.query"
+"""The module of :meth:`RunResult.query` (loaded on first use)."""
 KEYFRAME_LAYOUTS = ("compact", "full")
 """The layouts of a keyframe file (``output.keyframes`` adds "none": no files)."""
 JPEG_QUALITY = 85
@@ -323,6 +325,22 @@ class RunResult:
 
     def submap_ids(self) -> list[int]:
         return sorted({k.submap_id for k in self.keyframes})
+
+    def query(self, text: str, embedder=None, segmenter=None, top_k: int = 5, threshold: float = 0.5, **options):
+        """Find the objects ``text`` names in this map: ``sl4slam.objects.query.query_result`` on this
+        result (it needs keyframe embeddings, a run with ``--objects``); returns its ``QueryAnswer``.
+        ``embedder``, ``segmenter``: the models (default: the embedder that made the embeddings and
+        SAM 3, loaded on first use). The object package sits above this one, so it is named here, not
+        imported (as the catalog names its stages)."""
+        import importlib
+
+        module = importlib.import_module(_OBJECT_QUERY)
+        if embedder is None or segmenter is None:
+            module.check_query(text, top_k, threshold)  # bad input before a model loads
+            _, embeddings = module.open_for_query(self)
+            default_embedder, default_segmenter = module.default_models(embeddings.model)
+            embedder, segmenter = embedder or default_embedder, segmenter or default_segmenter
+        return module.query_result(self, text, embedder, segmenter, top_k=top_k, threshold=threshold, **options)
 
     def loop_segments(self) -> np.ndarray:
         """Loop edges as camera-centre segments ``(L, 2, 3)`` (see :func:`loop_segments`)."""

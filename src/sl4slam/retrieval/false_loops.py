@@ -113,6 +113,24 @@ class FalseLoopRetrieval:
             self._stored.append(_Stored(int(frame.index), int(submap_id), np.asarray(frame.T_world_cam, np.float64),
                                         _grid_points(frame), _thumbnail(frame.rgb)))
 
+    def spill_features(self, folder, in_ram: int) -> None:
+        """``inner``'s, when it can keep older keyframes' features in a file."""
+        if hasattr(self.inner, "spill_features"):
+            self.inner.spill_features(folder, in_ram)
+
+    def mark(self) -> tuple:
+        """What :meth:`rewind` needs to return this wrapper and ``inner`` to this moment (``inner``
+        must have ``mark``/``rewind`` too)."""
+        return (self.inner.mark(), len(self._stored), self._rng.bit_generator.state, len(self.injected),
+                len(self.proposed))
+
+    def rewind(self, mark: tuple) -> None:
+        """Forget what was stored, drawn and proposed since :meth:`mark` returned ``mark``."""
+        inner, stored, state, injected, proposed = mark
+        self.inner.rewind(inner)
+        del self._stored[stored:], self.injected[injected:], self.proposed[proposed:]
+        self._rng.bit_generator.state = state
+
     def query(self, frames: Sequence[Frame], submap_id: int, max_results: int) -> list[LoopCandidate]:
         proposals = self.inner.query(frames, submap_id, max_results)
         by_index = {int(f.index): f for f in frames}

@@ -36,8 +36,11 @@ words <= 32 kB (int32 ids + float32 term frequencies); no images are kept.
 
 from __future__ import annotations
 
+import os
+import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Sequence
 
 import cv2
@@ -151,8 +154,11 @@ class OrbRetrieval:
         # Database: one entry per stored keyframe.
         self._frame_indices: list[int] = []
         self._submap_ids = np.zeros(0, np.int64)
-        self._keypoints: list[np.ndarray] = []
-        self._descriptors: list[np.ndarray] = []
+        self._keypoints: list[np.ndarray | None] = []  # None: spilled to the features file
+        self._descriptors: list[np.ndarray | None] = []
+        self._spill: _FeatureFile | None = None  # see spill_features
+        self._features_in_ram = 0  # keep this many newest keyframes' features in RAM (0: all)
+        self._spilled = 0  # positions below this are in the file
         self._document_frequency = np.zeros(self.vocabulary_size, np.int32)
         # Term-frequency matrix (stored keyframes x words) as growable CSR buffers.
         self._tf_indptr = np.zeros(1, np.int64)
@@ -174,6 +180,36 @@ class OrbRetrieval:
     def __len__(self) -> int:
         """Number of stored keyframes."""
         return len(self._frame_indices)
+
+    def spill_features(self, folder: str | os.PathLike | None, in_ram: int) -> None:
+        """Keep only the ``in_ram`` newest keyframes' keypoints and descriptors in RAM (about 38 kB
+        a keyframe); older ones go to one append-only file in ``folder`` (``None``: a temporary
+        file) and are read back (the same bytes) when a query verifies against them, at most
+        ``orb_candidates`` per submap. ``in_ram`` 0 keeps all. Call before the first :meth:`add`."""
+        self._features_in_ram = max(0, int(in_ram))
+        path = Path(folder) / "orb_features.bin" if folder is not None else None
+        self._spill = _FeatureFile(path) if self._features_in_ram else None
+
+    def features_in_ram(self) -> int:
+        """Stored keyframes whose keypoints and descriptors are in RAM."""
+        return len(self) - self._spilled
+
+    def _stored_features(self, position: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(keypoints (n, 2) float32, descriptors (n, 32) uint8)`` of the stored keyframe at ``position``."""
+        keypoints = self._keypoints[position]
+        if keypoints is not None:
+            return keypoints, self._descriptors[position]
+        return self._spill.read(position)
+
+    def _spill_oldest(self) -> None:
+        """Move the features of keyframes beyond the newest ``_features_in_ram`` to the file."""
+        if self._spill is None:
+            return
+        while len(self) - self._spilled > self._features_in_ram:
+            position = self._spilled
+            self._spill.write(position, self._keypoints[position], self._descriptors[position])
+            self._keypoints[position] = self._descriptors[position] = None
+            self._spilled += 1
 
     def forget_query_features(self) -> None:
         """Drop the features kept from the latest query, so that the next query or add extracts its
@@ -244,11 +280,35 @@ class OrbRetrieval:
             self._document_frequency[features.word_ids] += 1
             self._append_global_row(_global_vector(features))
         self._submap_ids = np.concatenate([self._submap_ids, np.full(len(batch), int(submap_id), np.int64)])
+        self._spill_oldest()
+
+    def mark(self) -> dict:
+        """What :meth:`rewind` needs to return the database to this moment: the stored count, the
+        buffers' fill and the cached idf, norms and inverted file (replaced, never changed in place,
+        so references are enough). Cost independent of the database's size."""
+        return {"count": len(self), "nnz": self._tf_nnz, "indptr": self._tf_indptr, "submap_ids": self._submap_ids,
+                "idf": self._idf, "stored_norm": self._stored_norm, "inverted": self._inverted,
+                "pending": dict(self._pending)}
+
+    def rewind(self, mark: dict) -> None:
+        """Forget every keyframe added since :meth:`mark` returned ``mark``: the database, its caches
+        and the latest query's features are as they were then (queries give the same answers)."""
+        count = int(mark["count"])
+        if count < self._spilled:  # only the newest keyframes are ever withdrawn, and they are in RAM
+            raise ValueError(f"cannot rewind to {count} keyframes: the first {self._spilled} were spilled")
+        if len(self) > count:
+            start = int(self._tf_indptr[count])
+            np.subtract.at(self._document_frequency, self._tf_indices[start: self._tf_nnz], 1)
+            del self._frame_indices[count:], self._keypoints[count:], self._descriptors[count:]
+        self._tf_nnz = int(mark["nnz"])
+        self._tf_indptr, self._submap_ids = mark["indptr"], mark["submap_ids"]
+        self._idf, self._stored_norm, self._inverted = mark["idf"], mark["stored_norm"], mark["inverted"]
+        self._pending = dict(mark["pending"])
 
     def _append_global_row(self, row: np.ndarray) -> None:
         count = len(self._frame_indices) - 1  # the row's position (frame index already appended)
         if count >= len(self._global):
-            grown = np.zeros((max(64, 2 * len(self._global)), GLOBAL_DIM), np.float32)
+            grown = np.zeros((max(64, len(self._global) + len(self._global) // 4), GLOBAL_DIM), np.float32)
             grown[: len(self._global)] = self._global
             self._global = grown
         self._global[count] = row
@@ -281,7 +341,7 @@ class OrbRetrieval:
     def _append_tf_row(self, word_ids: np.ndarray, word_tf: np.ndarray) -> None:
         needed = self._tf_nnz + len(word_ids)
         if needed > len(self._tf_indices):  # grow geometrically: amortized O(1) per entry
-            capacity = max(needed, 2 * len(self._tf_indices), 4096)
+            capacity = max(needed, len(self._tf_indices) + len(self._tf_indices) // 4, 4096)  # 1.25x: less slack
             grown_indices = np.zeros(capacity, np.int32)
             grown_data = np.zeros(capacity, np.float32)
             grown_indices[: self._tf_nnz] = self._tf_indices[: self._tf_nnz]
@@ -418,7 +478,7 @@ class OrbRetrieval:
 
         Returns 0 when there are too few tentative matches to reach ``orb_min_inliers``.
         """
-        stored_descriptors = self._descriptors[stored_position]
+        stored_keypoints, stored_descriptors = self._stored_features(stored_position)
         needed = max(MIN_FUNDAMENTAL_MATCHES, int(self.config.orb_min_inliers))
         if len(query) < needed or len(stored_descriptors) < needed:
             return 0
@@ -426,7 +486,7 @@ class OrbRetrieval:
         if len(query_idx) < needed:
             return 0
         points_query = query.keypoints[query_idx].astype(np.float64)
-        points_stored = self._keypoints[stored_position][stored_idx].astype(np.float64)
+        points_stored = stored_keypoints[stored_idx].astype(np.float64)
         cv2.setRNGSeed(self.seed)  # RANSAC sampling: the same result for the same pair, whatever came before
         fundamental, mask = cv2.findFundamentalMat(
             points_query, points_stored, cv2.FM_RANSAC, self.epipolar_threshold_px, 0.999, 2000
@@ -490,6 +550,38 @@ class OrbRetrieval:
         ]
         candidates.sort(key=lambda c: (c.distance, c.query_frame, c.match_frame))
         return candidates[:max_results]
+
+
+class _FeatureFile:
+    """Keypoints and descriptors of stored keyframes in one append-only file, read back by position.
+
+    Each record is the keypoints' float32 bytes then the descriptors' uint8 bytes; the offsets and
+    counts stay in RAM (16 bytes a keyframe). The file is started empty; ``path`` ``None``: an
+    anonymous temporary file."""
+
+    def __init__(self, path: Path | None) -> None:
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self._file = open(path, "w+b") if path is not None else tempfile.TemporaryFile()
+        self._records: dict[int, tuple[int, int]] = {}  # position -> (offset, count)
+        self._end = 0
+
+    def write(self, position: int, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
+        data = np.ascontiguousarray(keypoints, np.float32).tobytes() + np.ascontiguousarray(descriptors, np.uint8).tobytes()
+        self._file.seek(self._end)
+        self._file.write(data)
+        self._records[position] = (self._end, len(keypoints))
+        self._end += len(data)
+
+    def read(self, position: int) -> tuple[np.ndarray, np.ndarray]:
+        offset, count = self._records[position]
+        self._file.flush()
+        self._file.seek(offset)
+        data = self._file.read(count * (8 + 32))
+        keypoints = np.frombuffer(data, np.float32, count * 2).reshape(count, 2)
+        descriptors = np.frombuffer(data, np.uint8, count * 32, offset=count * 8).reshape(count, 32)
+        return keypoints, descriptors
 
 
 def _same_image(kept: np.ndarray, image: np.ndarray) -> bool:

@@ -126,6 +126,15 @@ class DescriptorIndex:
         self._submaps_sorted = self._submaps_sorted and bool(submaps[0] >= previous) and bool(np.all(np.diff(submaps) >= 0))
         self._size = stop
 
+    def mark(self) -> tuple[int, bool]:
+        """The stored count and sort flag, for :meth:`rewind`."""
+        return self._size, self._submaps_sorted
+
+    def rewind(self, mark: tuple[int, bool]) -> None:
+        """Forget the descriptors added since :meth:`mark` returned ``mark`` (rows past the count
+        are never read; the next add overwrites them)."""
+        self._size, self._submaps_sorted = int(mark[0]), bool(mark[1])
+
     def search(
         self,
         queries: np.ndarray | Tensor,
@@ -235,6 +244,15 @@ class SaladRetrieval:
             descriptors = self.describe(images)
         self._last_query = {}
         self.index.add(descriptors, frame_indices, submap_id)
+
+    def mark(self) -> tuple:
+        """What :meth:`rewind` needs to return the index to this moment."""
+        return self.index.mark(), dict(self._last_query)
+
+    def rewind(self, mark: tuple) -> None:
+        """Forget the keyframes added since :meth:`mark` returned ``mark``."""
+        self.index.rewind(mark[0])
+        self._last_query = dict(mark[1])
 
     def query(self, frames: Sequence[Frame], submap_id: int, max_results: int) -> list[LoopCandidate]:
         """Loop candidates for the new keyframes ``frames`` of submap ``submap_id``, best (smallest distance) first."""

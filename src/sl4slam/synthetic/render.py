@@ -276,3 +276,58 @@ def render_frames(
     if return_surfaces:
         return rgb, depth, surfaces
     return rgb, depth
+
+
+ROOM_OBJECT_ID = -1
+"""The object id of a pixel that sees the room (walls, floor, ceiling) rather than a furniture box."""
+
+
+def object_ids_from_surfaces(surfaces: np.ndarray) -> np.ndarray:
+    """Per-pixel object ids from surface ids: furniture box ``b`` (surfaces ``6 + 6 b .. 11 + 6 b``,
+    numbering in ``sl4slam.synthetic.world``) is ``b``; the room is :data:`ROOM_OBJECT_ID`.
+
+    Args:
+        surfaces: integer surface ids of any shape (``render_frames(..., return_surfaces=True)``).
+
+    Returns:
+        int16 object ids of the same shape.
+    """
+    surfaces = np.asarray(surfaces).astype(np.int64)
+    return np.where(surfaces >= 6, (surfaces - 6) // 6, ROOM_OBJECT_ID).astype(np.int16)
+
+
+def render_object_ids(world, T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Per-pixel object ids of cameras in a world: which furniture box each pixel sees.
+
+    Only the geometry is ray-cast (no texture lookups): cheaper than :func:`render_frames`, and the
+    ids equal ``object_ids_from_surfaces`` of its surfaces for the same cameras.
+
+    Args:
+        world: a :class:`World`, or its ``Layout`` (the boxes are all that is read).
+        T_world_cam: ``(N, 4, 4)`` (or ``(4, 4)``) camera poses, OpenCV camera axes.
+        K: ``(3, 3)`` intrinsics (pixel-centre convention). width, height: image size in pixels.
+
+    Returns:
+        ``(N, H, W)`` int16: box index ``b`` (``layout.boxes_min[b]``), or :data:`ROOM_OBJECT_ID`.
+    """
+    layout = getattr(world, "layout", world)
+    scene = world if hasattr(world, "layout") else _LayoutOnly(layout)
+    T = np.asarray(T_world_cam, np.float64)
+    if T.ndim == 2:
+        T = T[None]
+    v, u = np.meshgrid(np.arange(height, dtype=np.float64), np.arange(width, dtype=np.float64), indexing="ij")
+    rays_cam = camera_rays(K, np.stack([u.ravel(), v.ravel()], axis=1))
+    out = np.empty((T.shape[0], height, width), np.int16)
+    for i, pose in enumerate(T):
+        rays = (rays_cam @ pose[:3, :3].T).astype(np.float32)
+        o = [np.full(rays.shape[0], pose[a, 3], np.float32) for a in range(3)]
+        _, surface = _cast(scene, o, [np.ascontiguousarray(rays[:, a]) for a in range(3)])
+        out[i] = object_ids_from_surfaces(surface).reshape(height, width)
+    return out
+
+
+class _LayoutOnly:
+    """A layout seen as a world by the ray caster (which reads ``world.layout`` only)."""
+
+    def __init__(self, layout):
+        self.layout = layout

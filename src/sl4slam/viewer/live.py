@@ -17,6 +17,12 @@ Per snapshot the worker:
    :mod:`sl4slam.viewer.scene`), so the browser holds at most ``point_budget`` points;
 4. recomputes the keyframe cameras (``P = K [R|t] H^-1`` decomposed, as the trajectory is), adds
    the new frustums and thumbnails, moves the old ones, and redraws trajectory and loop edges.
+
+With ``objects=True`` (a run with ``--objects``) the panel has a "Find object" box
+(:class:`sl4slam.viewer.objects.LiveObjectQueryPanel`): ``on_submap`` also keeps the keyframe
+embeddings so far (copies of the lists of ``pipeline.objects``, no array copied), and a query is
+answered on its own worker thread on the newest snapshot when it is asked. With ``objects=False``
+the folder holds one line on how to get embeddings.
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ from __future__ import annotations
 import sys
 import threading
 from dataclasses import dataclass, field
-from typing import TextIO
+from typing import Callable, TextIO
 
 import numpy as np
 
@@ -64,6 +70,8 @@ class _Snapshot:
     gt: np.ndarray | None = None
     summary: dict | None = None
     keyframe_estimates: dict[int, np.ndarray] = field(default_factory=dict)  # per keyframe (keyframe graph)
+    embeddings: tuple | None = None  # (frame indices, vectors, embedder) of the keyframes embedded so far
+    submap: int | None = None  # the newest submap (None: the finished map)
 
 
 class LiveViewer:
@@ -75,10 +83,16 @@ class LiveViewer:
         pipeline = SLAMPipeline.from_config(config, frontend, retrieval, on_submap=viewer.on_submap)
         result = pipeline.run(source)
         viewer.finish(result)
+
+    ``objects``: ``True`` for a pipeline that embeds its keyframes (``--objects``): the panel gets
+    the "Find object" box (:attr:`objects`, a ``LiveObjectQueryPanel``; ``query_models``: its
+    ``f(embedder_name) -> (embedder, segmenter)``, default the run's embedder and SAM 3); ``False``:
+    a line saying to run with ``--objects``; ``None``: neither.
     """
 
     def __init__(self, settings: ViewerSettings | None = None, title: str = "sl4slam (live)",
-                 redraw_tolerance: float = 1e-3, stream: TextIO = sys.stdout, viewer=None) -> None:
+                 redraw_tolerance: float = 1e-3, stream: TextIO = sys.stdout, viewer=None, objects: bool | None = None,
+                 query_models: Callable | None = None) -> None:
         from .app import MapViewer
 
         self.viewer = viewer if viewer is not None else MapViewer(settings, title=title, stream=stream)
@@ -94,6 +108,16 @@ class LiveViewer:
         self.updates = 0
         self.redrawn: list[list[int]] = []  # per update: submaps redrawn because their node moved
         self.error: BaseException | None = None
+        self._latest: _Snapshot | None = None  # what a query reads: the newest snapshot
+        self.objects = self.objects_hint = None
+        if objects:
+            from .objects import LiveObjectQueryPanel
+
+            self.objects = LiveObjectQueryPanel(self.viewer, self.current_map, models=query_models)
+        elif objects is not None:
+            from .objects import objects_hint
+
+            self.objects_hint = objects_hint(self.viewer)
         self._worker = threading.Thread(target=self._run, name="sl4slam-live-viewer", daemon=True)
         self._worker.start()
 
@@ -104,13 +128,36 @@ class LiveViewer:
         snapshot = _Snapshot(keyframes=list(pipeline.keyframes),
                              estimates={k: np.array(v, np.float64) for k, v in world.H_world_submap.items()},
                              edges=list(pipeline.edges), frames=int(pipeline.num_frames), colors=pipeline.colors,
-                             keyframe_estimates=dict(world.H_world_keyframe))
+                             keyframe_estimates=dict(world.H_world_keyframe), submap=int(submap_id))
+        embedder = getattr(pipeline, "objects", None) if self.objects is not None else None
+        if embedder is not None:  # the lists as they are now (add() appends or replaces rows, never edits one)
+            snapshot.embeddings = (list(embedder.frame_index), list(embedder.vectors), embedder.embedder)
         self._submit(snapshot)
 
     __call__ = on_submap
 
-    def finish(self, result, summary: dict | None = None, timeout: float = 60.0) -> None:
-        """Draw the final (polished) result, with ground truth and the run summary; wait until drawn."""
+    def current_map(self):
+        """The newest snapshot as a ``sl4slam.viewer.objects.LiveMap`` for a query (``None`` before the
+        first submap, or without embeddings)."""
+        from .objects import LiveMap
+
+        with self._cond:
+            snap = self._latest
+        if snap is None or snap.embeddings is None:
+            return None
+        frame_index, vectors, embedder = snap.embeddings
+        keyframes = [k for k in snap.keyframes if k.submap_id in snap.estimates]
+        known = snap.T_world_cam is not None and len(snap.T_world_cam) == len(keyframes)
+        cameras = {"T_world_cam": snap.T_world_cam, "K": snap.K} if known else {}
+        return LiveMap(keyframes=keyframes, H_world_submap=snap.estimates, H_world_keyframe=snap.keyframe_estimates,
+                       colors=snap.colors, frame_index=frame_index, vectors=vectors, embedder=embedder,
+                       submap=snap.submap, **cameras)
+
+    def finish(self, result, summary: dict | None = None, timeout: float = 60.0, folder=None) -> None:
+        """Draw the final (polished) result, with ground truth and the run summary; wait until drawn.
+        ``folder``: the result folder the run wrote, which object queries then read."""
+        if folder is not None and self.objects is not None:
+            self.objects.finished(folder)
         snapshot = _Snapshot(keyframes=list(result.keyframes), estimates=dict(result.H_world_submap),
                              edges=list(result.edges), frames=int(result.stats.get("frames", 0)),
                              T_world_cam=result.T_world_cam, K=result.K, gt=result.T_world_cam_gt, summary=summary,
@@ -120,6 +167,9 @@ class LiveViewer:
 
     def _submit(self, snapshot: _Snapshot) -> None:
         with self._cond:
+            if snapshot.embeddings is None and self._latest is not None:
+                snapshot.embeddings = self._latest.embeddings  # the finished map: the last submap's embeddings
+            self._latest = snapshot
             self._pending = snapshot  # the newest wins: older snapshots are subsumed by it
             self._cond.notify_all()
 
@@ -133,6 +183,8 @@ class LiveViewer:
             self._closed = True
             self._cond.notify_all()
         self.viewer.close()
+        if self.objects is not None:
+            self.objects.close()
 
     def serve_until_stopped(self, stream: TextIO = sys.stdout) -> None:
         """Keep the map served after the run until Ctrl-C or SIGTERM, then close (see

@@ -25,6 +25,7 @@ from typing import TextIO
 
 import numpy as np
 
+from ..objects.store import EMBEDDINGS_FILE
 from ..result.reading import KEYFRAMES_OPTION, RunResult, load_result
 from .scene import MapState, MapTotals, ViewerSettings, gt_in_estimate_frame, make_cloud, thumbnail
 
@@ -333,6 +334,10 @@ def view_result(path: str | Path, settings: ViewerSettings | None = None, block:
             signals.restore()
         raise
     viewer.loader = ResultLoader(viewer, folder, settings, stream).start()
+    if (folder / EMBEDDINGS_FILE).is_file():  # a run with --objects: the "Find object" text box
+        from .objects import ObjectQueryPanel
+
+        viewer.objects = ObjectQueryPanel(viewer, folder)
     if not block:
         return viewer
     serve_until_stopped(viewer, stream, stop=viewer.loader.failed, signals=signals)
