@@ -372,3 +372,27 @@ def test_a_run_with_objects_and_no_weights_offline_stops_in_one_line(world, tmp_
     with pytest.raises(MissingWeightsError, match="PE-Core-L14-336 weights .*--objects-weights PATH") as caught:
         run_slam(world, tmp_path / "out", config, progress=False)
     assert "\n" not in str(caught.value) and not (tmp_path / "out").exists()
+
+
+def test_tiny_random_models_answer_a_query_end_to_end(world, tmp_path, tiny_segmenter, monkeypatch) -> None:
+    """The real code paths, offline: a run embeds its keyframes with the tiny random PE-Core, and
+    ``sl4slam query`` answers with it and the tiny random SAM 3 (any answer: the weights are random)."""
+    import sl4slam.cli as cli
+    from sl4slam.objects.embedder import make_embedder
+    from sl4slam.runner import run_slam
+
+    config = _sim_config()
+    config.objects.enabled, config.objects.embedder = True, "tiny-random"
+    run_slam(world, tmp_path / "run", config, progress=False)
+    monkeypatch.setattr(cli, "query_models", lambda name: (make_embedder(name), tiny_segmenter))
+    answer_file = tmp_path / "answer.json"
+    assert cli.main(["query", str(tmp_path / "run"), "red mug", "--top-k", "2", "--threshold", "0",
+                     "--json", str(answer_file)]) == 0
+    answer = json.loads(answer_file.read_text())
+    keyframes = {int(p.stem) for p in (tmp_path / "run" / "keyframes").glob("*.npz")}
+    assert answer["query"] == "red mug" and answer["embedder"] == "tiny-random" and len(answer["keyframes"]) == 2
+    assert {k["frame_index"] for k in answer["keyframes"]} <= keyframes
+    assert sum(k["masks"] for k in answer["keyframes"]) > 0  # threshold 0: the tiny SAM 3 returns masks
+    for instance in answer["instances"]:
+        assert np.all(np.isfinite(instance["centre"])) and np.all(np.asarray(instance["extents"]) >= 0)
+        assert {v["frame_index"] for v in instance["views"]} <= keyframes
