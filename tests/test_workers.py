@@ -5,6 +5,7 @@ dropped or dies; one line for settings and sources that cannot have them."""
 from __future__ import annotations
 
 import os
+import socket
 import sys
 import threading
 from functools import partial
@@ -233,7 +234,12 @@ def test_a_live_camera_keeps_the_model_in_the_run(tmp_path: Path) -> None:
 def test_ray_missing_or_unreachable_is_one_line(monkeypatch) -> None:
     monkeypatch.setitem(sys.modules, "ray", None)
     with pytest.raises(UserError, match=r'^--ray-address needs Ray: pip install "sl4slam\[cluster\]"$'):
-        RayWorkers(partial(frontend_for_worker, SLAMConfig()), 1, "10.0.0.1:6379")
+        RayWorkers(partial(frontend_for_worker, SLAMConfig()), 1, "auto")
+    with socket.socket() as closed:  # a port nothing listens on: bound, never listening
+        closed.bind(("127.0.0.1", 0))
+        port = closed.getsockname()[1]
+        with pytest.raises(UserError, match=rf"^cannot reach the Ray cluster at 127.0.0.1:{port}: .*; check --ray-address"):
+            RayWorkers(partial(frontend_for_worker, SLAMConfig()), 1, f"127.0.0.1:{port}")
 
 
 def test_a_run_may_resume_with_other_workers(tmp_path: Path) -> None:

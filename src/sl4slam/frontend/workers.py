@@ -152,6 +152,10 @@ class RayWorkers:
     """
 
     def __init__(self, factory: Factory, workers: int, address: str, retries: int = 2) -> None:
+        problem = unreachable(address)
+        if problem:
+            raise UserError(f"cannot reach the Ray cluster at {address}: {problem}; check --ray-address "
+                            "(host:6379, ray://host:10001 or auto)")
         try:
             import ray
         except ImportError:
@@ -210,6 +214,22 @@ class RayWorkers:
         if self._started:
             self._ray.shutdown()
             self._started = False
+
+
+def unreachable(address: str, seconds: float = 5.0) -> str | None:
+    """Why nothing answers at a Ray address's host and port (a TCP connection refused or timed out
+    within ``seconds``), or ``None``; "auto" and addresses without a port are left to Ray."""
+    import socket
+
+    target = address.split("://", 1)[-1]
+    host, _, port = target.rpartition(":")
+    if not host or not port.isdigit():
+        return None
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=seconds):
+            return None
+    except OSError as exc:
+        return exc.strerror or type(exc).__name__
 
 
 class WorkerFrontend:
