@@ -167,16 +167,18 @@ def rank_keyframes(text_embedding: np.ndarray, embeddings: KeyframeEmbeddings, f
     return [KeyframeHit(frame_index=int(index[i]), similarity=float(similarity[i])) for i in order]
 
 
-def default_models(embedder_name: str) -> tuple[ImageEmbedder, TextSegmenter]:
-    """The embedder called ``embedder_name`` (the one that made a result's keyframe embeddings) and
-    the default text segmenter (SAM 3), loaded (downloaded on first use)."""
+def default_models(embedder_name: str, embedder: ImageEmbedder | None = None,
+                   segmenter: TextSegmenter | None = None) -> tuple[ImageEmbedder, TextSegmenter]:
+    """``embedder`` and ``segmenter``, each loaded when not given (downloaded on first use): the
+    embedder called ``embedder_name`` (the one that made a result's keyframe embeddings) and the
+    default text segmenter (SAM 3)."""
     try:
         from .embedder import make_embedder
         from .sam3 import make_segmenter
     except ImportError as exc:
         raise UserError(f"the object query models cannot be loaded ({exc}); install them: "
                         'pip install "sl4slam[objects]"') from None
-    return make_embedder(embedder_name), make_segmenter()
+    return embedder or make_embedder(embedder_name), segmenter or make_segmenter()
 
 
 def query_result(result: str | Path | RunResult, text: str, embedder: ImageEmbedder, segmenter: TextSegmenter,

@@ -338,8 +338,7 @@ class RunResult:
         if embedder is None or segmenter is None:
             module.check_query(text, top_k, threshold)  # bad input before a model loads
             _, embeddings = module.open_for_query(self)
-            default_embedder, default_segmenter = module.default_models(embeddings.model)
-            embedder, segmenter = embedder or default_embedder, segmenter or default_segmenter
+            embedder, segmenter = module.default_models(embeddings.model, embedder, segmenter)
         return module.query_result(self, text, embedder, segmenter, top_k=top_k, threshold=threshold, **options)
 
     def loop_segments(self) -> np.ndarray:

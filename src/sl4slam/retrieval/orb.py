@@ -566,6 +566,7 @@ class _FeatureFile:
         self._file = open(path, "w+b") if path is not None else tempfile.TemporaryFile()
         self._records: dict[int, tuple[int, int]] = {}  # position -> (offset, count)
         self._end = 0
+        self._unflushed = False
 
     def write(self, position: int, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
         data = np.ascontiguousarray(keypoints, np.float32).tobytes() + np.ascontiguousarray(descriptors, np.uint8).tobytes()
@@ -573,10 +574,13 @@ class _FeatureFile:
         self._file.write(data)
         self._records[position] = (self._end, len(keypoints))
         self._end += len(data)
+        self._unflushed = True
 
     def read(self, position: int) -> tuple[np.ndarray, np.ndarray]:
         offset, count = self._records[position]
-        self._file.flush()
+        if self._unflushed:  # reads see the writes after a flush of the buffer
+            self._file.flush()
+            self._unflushed = False
         self._file.seek(offset)
         data = self._file.read(count * (8 + 32))
         keypoints = np.frombuffer(data, np.float32, count * 2).reshape(count, 2)
