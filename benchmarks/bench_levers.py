@@ -95,6 +95,8 @@ VARIANTS = {
                               "overlap), every proposal replaced by a wrong place: the loop gate alone"),
     "submap2-false1": ({"backend.graph": "submap", "submap.overlap": 2, "false_loops.rate": 1.0},
                        "submap graph with 2 shared frames (no attention check), every proposal a wrong place"),
+    "defaults-corr8000": ({"__defaults__": True, "alignment.max_correspondences": 8000},
+                          "the defaults with at most 8000 shared pixels per frame in a link's fits (30000 by default)"),
     "defaults-sensor": ({"__defaults__": True, "source.metric_depth": "sensor"},
                         "the defaults with metric scale from the depth sensor"),
 }

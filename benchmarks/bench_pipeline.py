@@ -24,6 +24,8 @@ import numpy as np
 from harness import LapSource, make_pipeline, result_file, simulated_config, synthetic_world, write_report
 
 STAGES = ("retrieval", "points", "alignment", "loops", "backend", "store")
+RANGES = ((10, 20), (290, 300), (990, 1000), (2990, 3000))
+"""Submap ranges of the long-run table (the ones a run reaches)."""
 
 
 def resident_mib() -> float:
@@ -37,30 +39,47 @@ def resident_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def _setting(item: str) -> tuple[str, object]:
+    """``KEY=VALUE`` as a config key and a number where the value reads as one."""
+    key, _, value = item.partition("=")
+    for kind in (int, float):
+        try:
+            return key, kind(value)
+        except ValueError:
+            pass
+    return key, value
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--submaps", type=int, default=300)
     parser.add_argument("--retrieval", default="orb")
+    parser.add_argument("--graph", default=None, help="backend.graph (default: the setting's default, the keyframe graph)")
     parser.add_argument("--perspective", type=float, default=0.1)
     parser.add_argument("--overlap", type=int, default=1, help="shared frames between submaps (the recorded figures: 1)")
     parser.add_argument("--keyframes-in-ram", type=int, default=None,
                         help="submap.keyframes_in_ram (default: the setting's default; 0: every keyframe in RAM)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="another setting for the run, as a config key (repeatable), e.g. alignment.max_correspondences=8000")
+    parser.add_argument("--plot", help="also draw ms per submap and RSS against the submap index into this PNG")
     parser.add_argument("--out", default=str(result_file("pipeline")))
     args = parser.parse_args()
     from sl4slam.io import open_source
 
     config = simulated_config({
         "retrieval.kind": args.retrieval, "sim.perspective": args.perspective, "sim.distort_first_submap": False,
-        "backend.graph": "submap",  # the graph the recorded figures were measured on
+        **({"backend.graph": args.graph} if args.graph else {}),
         "submap.overlap": args.overlap,  # ... with one shared frame (the frames per forward set the cost)
         "overlap": False,  # one submap after the other: each submap's stages timed on their own
         **({"submap.keyframes_in_ram": args.keyframes_in_ram} if args.keyframes_in_ram is not None else {}),
+        **dict(_setting(item) for item in args.set),
     })
     # the lap preloaded, so the benchmark does not time PNG decoding
     source = LapSource(open_source(str(synthetic_world(518, 294))), laps=10_000, preload=True)
     pipeline = make_pipeline(config)
     keyframe_seconds: list[float] = []  # frames whose feed ran no submap: keyframe selection
     rss_trace: list[tuple[int, float]] = []  # (keyframes stored, resident MiB) every 10 submaps
+    submap_trace: list[int] = []  # the submap count of each RSS sample
     pipeline.start(source, progress=False)
     start = time.perf_counter()
     for frame in source:
@@ -73,6 +92,7 @@ def main() -> None:
         done = pipeline.num_submaps
         if done % 10 == 0:
             rss_trace.append((len(pipeline.keyframes), resident_mib()))
+            submap_trace.append(done)
             print(f"submap {done}: {time.perf_counter() - start:.0f} s, loops {pipeline.num_loops}, "
                   f"RSS {rss_trace[-1][1]:.0f} MiB", flush=True)
         if done >= args.submaps:
@@ -83,8 +103,11 @@ def main() -> None:
     result_seconds = time.perf_counter() - t0
     per_submap = pipeline.ledger.submap_seconds
     totals = np.array([sum(s.get(k, 0.0) for k in STAGES) for s in per_submap])
-    early, late = slice(10, 20), slice(len(per_submap) - 10, len(per_submap))
-    middle = slice(len(per_submap) // 2 - 5, len(per_submap) // 2 + 5)
+    n = len(per_submap)
+    # the fixed ranges of the long-run table that this run reaches, then its last ten submaps
+    windows = [(f"submaps {a}-{b}", slice(a, b)) for a, b in RANGES if b <= n - 10 or (a, b) == RANGES[0]]
+    windows.append(("last 10 submaps", slice(n - 10, n)))
+    early, late = windows[0][1], windows[-1][1]
 
     def med(values, window) -> float:
         return float(np.median(np.asarray(values)[window])) * 1000
@@ -92,16 +115,8 @@ def main() -> None:
     rows = []
     for stage in STAGES + ("retrieval_describe", "frontend"):
         values = [s.get(stage, 0.0) for s in per_submap]
-        rows.append(f"| {stage} | {med(values, early):.1f} | {med(values, middle):.1f} | {med(values, late):.1f} |")
-    # cost of the submaps that closed no loop: what every submap pays, loops or not
+        rows.append(f"| {stage} | " + " | ".join(f"{med(values, w):.1f}" for _, w in windows) + " |")
     odometry_only = np.array([n == 0 for n in pipeline.ledger.submap_loops])
-    plain = np.flatnonzero(odometry_only)
-    half = len(per_submap) // 2
-    plain_early, plain_late = plain[(plain >= 10) & (plain < 40)][:10], plain[-10:]
-    plain_middle = plain[plain >= half - 5][:10]
-    plain_row = (f"| total, submaps that closed no loop | {np.median(totals[plain_early]) * 1000:.1f} | "
-                 f"{np.median(totals[plain_middle]) * 1000:.1f} | "
-                 f"{np.median(totals[plain_late]) * 1000:.1f} |") if len(plain_early) and len(plain_late) else ""
     loop_backend = [s.get("backend", 0.0) * 1000 for s, n in zip(per_submap, pipeline.ledger.submap_loops) if n]
     stored = sum(k.nbytes for k in pipeline.keyframes) / len(pipeline.keyframes)
     store = pipeline.keyframe_store
@@ -117,22 +132,22 @@ def main() -> None:
         "",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, 24 GiB, no GPU; "
         f"Python {platform.python_version()}. Date: {datetime.date.today()}.",
-        f"Command: `python benchmarks/bench_pipeline.py --submaps {args.submaps} --retrieval {args.retrieval} --overlap {args.overlap}`.",
+        f"Command: `python benchmarks/bench_pipeline.py {' '.join(sys.argv[1:])}`.",
         f"Synthetic world at {W}x{H}, replayed lap after lap; submaps of 16 new keyframes (17 frames, 18 with a "
         f"loop frame); simulated frontend (perspective 0.1, noise and outlier blobs at their defaults); "
-        f"{args.retrieval} retrieval; SL(4) backend. {len(per_submap)} submaps, {len(pipeline.keyframes)} keyframes, "
+        f"{args.retrieval} retrieval; SL(4) {getattr(pipeline.backend, 'design', '')} graph. {len(per_submap)} submaps, {len(pipeline.keyframes)} keyframes, "
         f"{pipeline.num_loops} loops.",
         "",
         "Median milliseconds per submap:",
         "",
-        f"| stage | submaps 10-20 | submaps {middle.start}-{middle.stop} | last 10 submaps |",
-        "|---|---|---|---|",
+        "| stage | " + " | ".join(name for name, _ in windows) + " |",
+        "|---|" + "---|" * len(windows),
         *rows,
-        f"| **total without frontend and descriptors** | **{med(totals, early):.1f}** | **{med(totals, middle):.1f}** "
-        f"| **{med(totals, late):.1f}** |",
-        plain_row,
+        "| **total without frontend and descriptors** | " + " | ".join(f"**{med(totals, w):.1f}**" for _, w in windows) + " |",
         "",
-        f"Last 10 / submaps 10-20, total: {med(totals, late) / med(totals, early):.2f}. Over the run the "
+        f"Last 10 / submaps 10-20, total: {med(totals, late) / med(totals, early):.2f}"
+        + "".join(f"; last 10 / {name}: {med(totals, late) / med(totals, w):.2f}" for name, w in windows[1:-1])
+        + f". Over the run the "
         f"median total is {np.median(totals) * 1000:.1f} ms and the 90th percentile {np.percentile(totals, 90) * 1000:.1f} ms.",
         "",
         f"Submaps that closed a loop: {int((~odometry_only).sum())}; their backend update (iSAM2 steps "
@@ -158,6 +173,35 @@ def main() -> None:
         "",
     ]
     write_report(args.out, lines)
+    if args.plot:
+        plot(args.plot, totals, submap_trace, [m for _, m in rss_trace])
+
+
+def plot(path: str, totals: np.ndarray, submaps: list[int], rss_mib: list[float]) -> None:
+    """Milliseconds per submap (each, and a running median over 51) and RSS against the submap index."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ms = totals * 1000
+    half = 25
+    running = [np.median(ms[max(0, i - half): i + half + 1]) for i in range(len(ms))]
+    figure, axis = plt.subplots(figsize=(9, 4))
+    axis.plot(ms, ",", color="0.6", label="model-free ms per submap")
+    axis.plot(running, color="C0", label="running median (51 submaps)")
+    axis.set_xlabel("submap")
+    axis.set_ylabel("ms per submap")
+    axis.set_ylim(0, float(np.percentile(ms, 99)) * 1.2)
+    memory = axis.twinx()
+    memory.plot(submaps, np.asarray(rss_mib) / 1024, color="C3", label="RSS")
+    memory.set_ylabel("RSS (GiB)")
+    memory.set_ylim(0, max(rss_mib) / 1024 * 1.2)
+    lines = axis.get_legend_handles_labels()
+    more = memory.get_legend_handles_labels()
+    axis.legend(lines[0] + more[0], lines[1] + more[1], loc="upper left")
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
 
 
 if __name__ == "__main__":

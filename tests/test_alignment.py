@@ -308,3 +308,28 @@ def test_points_mapped_through_infinity_are_outliers() -> None:
     assert inliers.tolist() == [True, False, False]
     assert r2[0] == pytest.approx(0.0)
     assert cost == pytest.approx(2 * 0.01**2)
+
+
+def test_matrix_log_and_exp_agree_with_scipy_and_invert_each_other() -> None:
+    """The series logarithm and exponential of 4x4 transforms (the tangent means and scatters of
+    links) match SciPy's ``logm``/``expm`` to float64 rounding, invert each other, and take the
+    general path for a matrix far from the identity; a batch equals its matrices one by one."""
+    from scipy.linalg import expm, logm
+
+    from sl4slam.geometry import LOG_SERIES_RADIUS, matrix_exp, matrix_log
+
+    rng = np.random.default_rng(5)
+    for scale in (1e-4, 0.01, 0.05, 0.3, 1.5):
+        A = rng.normal(size=(6, 4, 4)) * scale
+        M = np.stack([expm(a) for a in A])
+        near = np.linalg.norm(M - np.eye(4), axis=(1, 2)) <= LOG_SERIES_RADIUS
+        if scale >= 1.5:
+            assert not near.any()  # the general path is taken, and must agree too
+        L = matrix_log(M)
+        for m, l in zip(M, L):
+            np.testing.assert_allclose(l, np.real(logm(m)), rtol=0, atol=1e-12 * max(1.0, np.abs(l).max()))
+        np.testing.assert_allclose(matrix_exp(L), M, rtol=0, atol=1e-12 * np.abs(M).max())
+        E = matrix_exp(A)
+        for a, e in zip(A, E):
+            np.testing.assert_allclose(e, expm(a), rtol=0, atol=1e-12 * np.abs(e).max())
+        assert np.array_equal(matrix_log(M[2]), L[2]) and np.array_equal(matrix_exp(A[2]), E[2])

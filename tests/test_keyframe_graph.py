@@ -247,6 +247,32 @@ def test_revisits_of_closed_places_are_priors_on_keyframe_nodes() -> None:
         np.testing.assert_allclose(results[True][1][k], results[False][1][k], atol=1e-5)
 
 
+@pytest.mark.parametrize("design", ["keyframe", "submap"])
+def test_an_estimate_of_some_submaps_is_the_whole_estimate_restricted_to_them(design: str) -> None:
+    """``world_estimate(submaps=...)`` (what the running metric frame reads for every completed link)
+    holds the very transforms of the whole estimate for those submaps and their keyframes, and no
+    others, with and without a pending submap and the final polish."""
+    rng = np.random.default_rng(21)
+    frames = [SubmapFrames(tuple(range(10 + 2 * k, 13 + 2 * k)), np.stack([np.eye(4), rigid(rng, 0.1, 0.2),
+                                                                         rigid(rng, 0.1, 0.2)]), shared=k > 0)
+              for k in range(5)]
+    backend = make_backend(BackendConfig(graph=design))
+    for k in range(5):
+        backend.add_submap(k, None if k == 0 else normalize_sl4(rigid(rng, 0.1, 0.2)), None, frames=frames[k])
+        if k < 4:  # the last one pending: its initial guess
+            backend.update()
+    for final in (False, True):
+        whole = backend.world_estimate(final=final)
+        part = backend.world_estimate(final=final, submaps={1, 4})
+        assert sorted(part.H_world_submap) == [1, 4]
+        for s in (1, 4):
+            assert np.array_equal(part.H_world_submap[s], whole.H_world_submap[s])
+        if design == "keyframe":
+            assert set(part.H_world_keyframe) == set(frames[1].frame_indices[1:]) | set(frames[4].frame_indices[1:])
+            for f, H in part.H_world_keyframe.items():
+                assert np.array_equal(H, whole.H_world_keyframe[f])
+
+
 def test_graph_setting() -> None:
     """"auto" is the keyframe graph for SL(4) and the submap graph for Sim(3), settled once by
     ``resolve`` with the rules that go with it; an explicit keyframe graph with Sim(3) is refused."""

@@ -215,7 +215,7 @@ def test_add_reuses_the_query_features_only_for_the_same_image(tum):
     extracted = retrieval.describe_seconds
     retrieval.add(as_frames([7], [tum[7].copy()]), submap_id=0)  # equal pixels, another array: reused
     assert retrieval.describe_seconds == extracted
-    stored = retrieval._descriptors[-1]
+    stored = retrieval._stored_features(len(retrieval) - 1)[1]
 
     changed = tum[8].copy()
     retrieval.query(as_frames([9], [changed]), submap_id=1, max_results=1)
@@ -223,8 +223,8 @@ def test_add_reuses_the_query_features_only_for_the_same_image(tum):
     extracted = retrieval.describe_seconds
     retrieval.add(as_frames([9], [changed]), submap_id=1)
     assert retrieval.describe_seconds > extracted
-    assert np.array_equal(retrieval._descriptors[-1], retrieval.extract(tum[20]).descriptors)
-    assert not np.array_equal(retrieval._descriptors[-1], stored)
+    assert np.array_equal(retrieval._stored_features(len(retrieval) - 1)[1], retrieval.extract(tum[20]).descriptors)
+    assert not np.array_equal(retrieval._stored_features(len(retrieval) - 1)[1], stored)
 
 
 def test_bad_input_is_a_user_error(tum):
@@ -282,3 +282,57 @@ def test_coarse_ranking_keeps_the_revisit_in_a_large_database():
     features = [retrieval.extract(query)]
     rows = np.arange(len(images))
     np.testing.assert_allclose(retrieval.similarity_rows(features, rows), retrieval.similarity(features), rtol=1e-5, atol=1e-7)
+
+
+def test_stored_words_decode_to_the_extracted_term_frequencies():
+    """The compact word rows give back exactly (bit for bit) the word ids and term frequencies of
+    extract(), for consecutive rows and for any selection of rows."""
+    retrieval = OrbRetrieval(RetrievalConfig(orb_features=300))
+    stripes = np.zeros((160, 200, 3), np.uint8)
+    stripes[:, ::6] = 255  # repetitive: words that occur several times
+    images = [random_texture(seed, (160, 200, 3)) for seed in range(400, 420)] + [stripes, np.zeros((160, 200, 3), np.uint8)]
+    retrieval.add(as_frames(list(range(len(images))), images), submap_id=0)
+    extracted = [retrieval.extract(image) for image in images]
+    assert max(f.word_tf.max(initial=0) * 4 * len(f) for f in extracted) > 1.5  # some word counted twice
+    for rows in (np.arange(len(images)), np.array([21, 3, 20, 0, 7]), np.array([], np.int64)):
+        data, indices, indptr = retrieval._entries(rows)
+        assert data.dtype == np.float32 and indices.dtype == np.int32 and indptr.dtype == np.int64
+        expected = [extracted[row] for row in rows]
+        assert data.tobytes() == np.concatenate([f.word_tf for f in expected] + [np.zeros(0, np.float32)]).tobytes()
+        assert indices.tobytes() == np.concatenate([f.word_ids for f in expected] + [np.zeros(0, np.int32)]).tobytes()
+        np.testing.assert_array_equal(np.diff(indptr), [len(f.word_ids) for f in expected])
+
+
+def test_a_rewound_database_with_spilled_features_answers_like_a_fresh_one(tmp_path):
+    """Rewinding withdraws the newest keyframes from every buffer (words, large steps, global rows,
+    features in RAM); keyframes added after it overwrite them, and the database then answers byte
+    for byte as one that never held the withdrawn keyframes."""
+    config = RetrievalConfig(orb_features=300)
+    images = [random_texture(seed, (160, 200, 3)) for seed in range(500, 524)]
+    kept, withdrawn, added = images[:12], images[12:18], images[18:]
+    rewound, fresh = OrbRetrieval(config), OrbRetrieval(config)
+    rewound.spill_features(tmp_path / "rewound", 8)  # the withdrawn six stay in RAM
+    fresh.spill_features(tmp_path / "fresh", 8)
+    for retrieval in (rewound, fresh):
+        for submap in range(3):
+            retrieval.add(as_frames(list(range(4 * submap, 4 * submap + 4)), kept[4 * submap : 4 * submap + 4]), submap)
+    mark = rewound.mark()
+    rewound.add(as_frames(list(range(100, 106)), withdrawn), 3)
+    queries = [rewound.extract(mild_warp(image)) for image in images[::5]]
+    rewound.similarity(queries)  # caches (idf, norms, inverted file) that include the withdrawn keyframes
+    rewound.rewind(mark)
+    for retrieval in (rewound, fresh):
+        retrieval.add(as_frames(list(range(200, 206)), added), 3)
+    assert len(rewound) == len(fresh) == 18 and rewound.features_in_ram() == fresh.features_in_ram() == 8
+    rows = np.arange(18)
+    for got, want in zip(rewound._entries(rows), fresh._entries(rows)):
+        assert got.tobytes() == want.tobytes()
+    assert rewound._global[:18].tobytes() == fresh._global[:18].tobytes()
+    np.testing.assert_array_equal(rewound._document_frequency, fresh._document_frequency)
+    for position in range(18):
+        for got, want in zip(rewound._stored_features(position), fresh._stored_features(position)):
+            assert got.tobytes() == want.tobytes()
+    assert rewound.similarity(queries).tobytes() == fresh.similarity(queries).tobytes()
+    assert rewound.similarity_rows(queries, rows[::-1]).tobytes() == fresh.similarity_rows(queries, rows[::-1]).tobytes()
+    probes = as_frames(list(range(300, 304)), [mild_warp(image) for image in images[:24:6]])
+    assert rewound.query(probes, 9, 4) == fresh.query(probes, 9, 4)

@@ -102,12 +102,12 @@ class MetricFrame:
     def running(self, submap_id: int, keyframes: Sequence[StoredKeyframe]) -> RunningFrame:
         """The metric frame of the map so far in ``submap_id``'s segment (its keyframes under iSAM2's
         current estimate)."""
-        world = self.backend.world_estimate()
-        members = self._running_keyframes(world, keyframes, self.backend.segment_of(submap_id))
+        members = self._running_keyframes(keyframes, self.backend.segment_of(submap_id))
         if len(members) < self.config.min_keyframes:
             return RunningFrame(None, problem=f"too few keyframes for a running upgrade ({len(members)})")
         try:
-            upgrade = self.estimate(members, world)
+            # only the members' submaps: reading out the whole map's estimate costs O(map) per link
+            upgrade = self.estimate(members, self.backend.world_estimate(submaps={k.submap_id for k in members}))
         except (UserError, ValueError, np.linalg.LinAlgError) as exc:
             return RunningFrame(None, problem=f"no running upgrade: {exc}")
         if upgrade.status is UpgradeStatus.APPLIED:
@@ -153,13 +153,13 @@ class MetricFrame:
             members.setdefault(int(segment), []).append(keyframe)
         return members
 
-    def _running_keyframes(self, world: WorldEstimate, keyframes: Sequence[StoredKeyframe], segment: int) -> list[StoredKeyframe]:
-        """``running_members`` of segment ``segment``'s keyframes placed in ``world`` (the same list as
-        ``running_members(segment_members(world, keyframes)[segment], running_keyframes)``), found with
-        array operations on the keyframes' submap ids: this runs for every completed link, and the
-        keyframes grow with the map while the members stay at most ``running_keyframes``."""
+    def _running_keyframes(self, keyframes: Sequence[StoredKeyframe], segment: int) -> list[StoredKeyframe]:
+        """``running_members`` of segment ``segment``'s keyframes whose submaps are in the graph (the
+        same list as ``running_members(segment_members(world, keyframes)[segment], running_keyframes)``),
+        found with array operations on the keyframes' submap ids: this runs for every completed link,
+        and the keyframes grow with the map while the members stay at most ``running_keyframes``."""
         ids = np.fromiter((k.submap_id for k in keyframes), dtype=np.int64, count=len(keyframes))
-        placed = np.isin(ids, np.fromiter(world.H_world_submap, dtype=np.int64, count=len(world.H_world_submap)))
+        placed = np.isin(ids, np.asarray(self.backend.submap_ids, dtype=np.int64))
         candidates = np.flatnonzero(placed)
         candidates = candidates[self.backend.segments_of(ids[candidates]) == segment]
         return [keyframes[i] for i in candidates[running_picks(len(candidates), self.config.running_keyframes)]]

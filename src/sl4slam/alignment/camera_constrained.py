@@ -6,7 +6,8 @@ the plane is mapped. The frame's camera, reconstructed in both submaps, adds wha
 lack: the same image means ``P_a H ~ P_b`` (11 equations), so ``H = H_p + c_a v^T`` with ``H_p``
 one solution, ``c_a`` the camera centre in submap ``a`` (homogeneous) and ``v`` in R^4. The points
 then fix ``v`` up to its component along the plane, which a small ridge term sets to the value
-nearest the particular solution ``H_p`` — the camera-consistent map closest to the Sim(3) guess.
+nearest the particular solution ``H_p`` — the camera-consistent map closest to the guess (the
+RANSAC fit where there is one, else the frame's calibration-and-scale link).
 Unlike a Sim(3) fallback, this keeps the projective part that the plane does observe.
 """
 
@@ -35,7 +36,8 @@ def camera_constrained_sl4(
     Args:
         X_a, X_b: ``(N, 3)`` the frame's points in submaps a and b (NaN rows ignored).
         P_a, P_b: ``(3, 4)`` the frame's camera matrices in submaps a and b.
-        H_guess: ``(4, 4)`` an initial map (e.g. a Sim(3) fit) selecting the particular solution.
+        H_guess: ``(4, 4)`` an initial map (a RANSAC fit, or the frame's calibration-and-scale link)
+            selecting the particular solution.
         config: inlier threshold, minimum inlier count, reweighting rounds, ridge and planarity.
 
     Returns:

@@ -72,7 +72,7 @@ def choose_link(fit_aligner: FrameFitter, link_aligner: FrameFitter,
     ``fit_aligner`` measures the 15-DOF fit (an ``SL4Aligner``), ``link_aligner`` the
     calibration-and-scale link (a ``CalibrationAligner``)."""
     fits = measure_frames(fit_aligner, pairs, seed)
-    links = measure_frames(link_aligner, pairs, seed)
+    links = measure_frames(link_aligner, pairs, seed, same_points=fits)
     link = link_from_shared_frames(link_aligner, pairs, seed, links)
     fitted = link_from_shared_frames(fit_aligner, pairs, seed, fits)
     if fitted.extras.get("degenerate"):  # the SL(4) aligner's own measurement of a degenerate frame

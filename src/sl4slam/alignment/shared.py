@@ -25,8 +25,8 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.linalg import expm, logm
 
+from ..geometry import matrix_exp, matrix_log
 from ..types import Alignment, FrameView
 from .common import FrameFitter, make_alignment
 from .ransac import transfer_errors
@@ -41,8 +41,8 @@ def tangent_mean(H: Sequence[np.ndarray], reference: np.ndarray, weights: Sequen
         weights: ``(len(H),)`` positive weights (``None``: equal).
     """
     inverse = np.linalg.inv(reference)
-    steps = [np.real(logm(inverse @ np.asarray(h, dtype=np.float64))) for h in H]
-    return reference @ expm(np.average(steps, axis=0, weights=weights))
+    steps = matrix_log(inverse @ np.asarray(H, dtype=np.float64))
+    return reference @ matrix_exp(np.average(steps, axis=0, weights=weights))
 
 
 def is_reference_view(view: FrameView) -> bool:
@@ -80,12 +80,16 @@ class FrameMeasurements:
     problems: list[str]
 
 
-def measure_frames(aligner: FrameFitter, pairs: Sequence[tuple[FrameView, FrameView]], seed: int) -> FrameMeasurements:
-    """Every shared frame measured alone by ``aligner`` (frame ``k`` with seed ``seed + k``)."""
+def measure_frames(aligner: FrameFitter, pairs: Sequence[tuple[FrameView, FrameView]], seed: int,
+                   same_points: FrameMeasurements | None = None) -> FrameMeasurements:
+    """Every shared frame measured alone by ``aligner`` (frame ``k`` with seed ``seed + k``);
+    ``same_points``: another aligner's measurements of the same frames with the same pixel
+    selection, whose points are taken as they are instead of being gathered again."""
     measured = FrameMeasurements([], [], [], [])
+    known = {} if same_points is None else dict(zip(same_points.frames, same_points.points))
     for k, (view_a, view_b) in enumerate(pairs):
         try:
-            X_a, X_b = aligner.pairs(view_a, view_b)
+            X_a, X_b = known[k] if k in known else aligner.pairs(view_a, view_b)
             alignment = aligner.fit(X_a, X_b, view_a, view_b, seed + k)
         except ValueError as exc:
             measured.problems.append(f"frame {k}: {exc}")

@@ -102,9 +102,7 @@ def link_scatter(combined: Alignment, per_frame: list[Alignment], information, g
         information: ``Alignment -> (dim, dim)`` the graph's information of an edge.
         generators: ``(dim, 4, 4)`` the graph group's tangent basis.
     """
-    from scipy.linalg import logm
-
-    from ..geometry import normalize_sl4
+    from ..geometry import matrix_log, normalize_sl4
 
     def unit(H: np.ndarray) -> np.ndarray:  # SL(4) links to det 1; a similarity's scale stays in its log
         return normalize_sl4(H) if len(generators) == 15 else np.asarray(H, dtype=np.float64)
@@ -112,7 +110,7 @@ def link_scatter(combined: Alignment, per_frame: list[Alignment], information, g
     target = unit(combined.H)
     values = []
     for own in per_frame:
-        xi = -tangent_coordinates(np.real(logm(target @ np.linalg.inv(unit(own.H)))), generators)
+        xi = -tangent_coordinates(matrix_log(target @ np.linalg.inv(unit(own.H))), generators)
         values.append(float(xi @ information(own) @ xi) / len(generators))
     return len(per_frame) / (len(per_frame) - 1) * float(np.mean(values))
 

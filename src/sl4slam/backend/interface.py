@@ -19,6 +19,7 @@ from __future__ import annotations
 import bisect
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from typing import Collection
 
 import numpy as np
 
@@ -121,8 +122,14 @@ class Backend(ABC):
         """Current estimate of where submap ``submap_id`` sits, (4, 4) float64."""
 
     @abstractmethod
-    def world_estimate(self, final: bool = False) -> WorldEstimate:
-        """The map under iSAM2's current estimate, or (``final``) polished to convergence (O(map))."""
+    def world_estimate(self, final: bool = False, submaps: Collection[int] | None = None) -> WorldEstimate:
+        """The map under iSAM2's current estimate, or (``final``) polished to convergence (O(map)).
+
+        Args:
+            final: polish the whole graph first.
+            submaps: only these submaps and their keyframes (``None``: every one); each transform is
+                the one the whole estimate holds, without converting the rest of the map.
+        """
 
     @property
     @abstractmethod

@@ -39,6 +39,7 @@ A failed update is rolled back (nodes and submaps) before :class:`BackendUpdateE
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Collection
 
 import numpy as np
 
@@ -247,15 +248,18 @@ class KeyframeBackend(Backend):
         submap = self._submaps[submap_id]
         return normalize_sl4(self.nodes.estimate(submap.nodes[0]) @ submap.frames.T_cam_submap[0])
 
-    def world_estimate(self, final: bool = False) -> WorldEstimate:
-        """Every submap and every keyframe (through its own node), from iSAM2 or polished (``final``).
+    def world_estimate(self, final: bool = False, submaps: Collection[int] | None = None) -> WorldEstimate:
+        """Every submap and every keyframe (through its own node), from iSAM2 or polished (``final``);
+        with ``submaps``, only those and their keyframes (only their nodes are read out).
 
         Vectorized over the nodes (thousands of them): ``X_n T_cam_submap`` for all at once.
         """
-        X = self.nodes.estimate_matrices(final)
-        row = {node: k for k, node in enumerate(self.nodes.node_ids)}
+        chosen = self._order if submaps is None else [s for s in self._order if s in submaps]
+        wanted = None if submaps is None else [node for s in chosen for node in self._submaps[s].nodes]
+        X = self.nodes.estimate_matrices(final, wanted)
+        row = {node: k for k, node in enumerate(self.nodes.node_ids if wanted is None else wanted)}
         nodes, T, frame_of, first = [], [], [], []
-        for submap_id in self._order:
+        for submap_id in chosen:
             submap = self._submaps[submap_id]
             for k, node in enumerate(submap.nodes):
                 nodes.append(row[node])

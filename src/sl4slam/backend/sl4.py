@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Sequence
 
 import gtsam
 import numpy as np
@@ -53,16 +53,16 @@ class SL4PoseGraph(PoseGraph):
     def _prior_factor(self, key: int, Z: gtsam.SL4, noise: Any) -> gtsam.PriorFactorSL4:
         return gtsam.PriorFactorSL4(key, Z, noise)
 
-    def estimate_matrices(self, final: bool = False) -> np.ndarray:
-        """``(N, 4, 4)`` every node's estimate in insertion order, as GTSAM holds it (det 1): the
-        fast form of :meth:`estimates` (``final``: :meth:`final_estimates`) for graphs of thousands
-        of nodes, without a per-node normalization."""
+    def estimate_matrices(self, final: bool = False, nodes: Sequence[int] | None = None) -> np.ndarray:
+        """``(N, 4, 4)`` every node's estimate in insertion order (or those of ``nodes``, in that
+        order), as GTSAM holds it (det 1): the fast form of :meth:`estimates` (``final``:
+        :meth:`final_estimates`) for graphs of thousands of nodes, without a per-node normalization."""
         if final and (self._pending_factors.size() or self._pending_values.size()):
             self.update()
         if not self._isam.size():
             values = gtsam.Values()
         else:
             values = self.polished_values() if final else self._isam.calculateBestEstimate()
-        keys = [self.key(node) for node in self._order]
+        keys = [self.key(node) for node in (self._order if nodes is None else nodes)]
         return np.array([(self._pending_values if self._pending_values.exists(key) else values).atSL4(key).matrix()
                          for key in keys], dtype=np.float64).reshape(-1, 4, 4)

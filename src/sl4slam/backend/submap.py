@@ -9,6 +9,8 @@ keyframe reaches the world through its submap's node.
 
 from __future__ import annotations
 
+from typing import Collection
+
 import numpy as np
 
 from .settings import BackendConfig
@@ -57,8 +59,11 @@ class SubmapBackend(Backend):
     def H_world_submap(self, submap_id: int) -> np.ndarray:
         return self.graph.estimate(submap_id)
 
-    def world_estimate(self, final: bool = False) -> WorldEstimate:
-        return WorldEstimate(self.graph.final_estimates() if final else self.graph.estimates())
+    def world_estimate(self, final: bool = False, submaps: Collection[int] | None = None) -> WorldEstimate:
+        estimates = self.graph.final_estimates() if final else self.graph.estimates()
+        if submaps is not None:
+            estimates = {s: H for s, H in estimates.items() if s in submaps}
+        return WorldEstimate(estimates)
 
     def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray,
                   frames: tuple[int, int] | None = None) -> float:

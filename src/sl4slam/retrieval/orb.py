@@ -30,8 +30,10 @@ monotone in the inlier count, so candidates of different queries compare by thei
 It is not on SALAD's scale: ``RetrievalConfig.tau_desc`` does not apply, the acceptance test is
 ``orb_min_inliers`` (distance ``< 1 - orb_min_inliers / orb_features``, 0.96 by default).
 
-Memory per stored keyframe (1000 features): descriptors 32 kB uint8, keypoints 8 kB float32,
-words <= 32 kB (int32 ids + float32 term frequencies); no images are kept.
+Memory per stored keyframe (1000 features): descriptors 32 kB uint8, keypoints 8 kB float32 (both
+may be spilled to a file, :meth:`OrbRetrieval.spill_features`), words about 5 kB (one byte per
+descriptor and table, see ``OrbRetrieval._append_tf_row``), the hashed global row 4 kB float32;
+no images are kept.
 """
 
 from __future__ import annotations
@@ -62,6 +64,10 @@ DESCRIPTOR_BITS = 256
 """ORB descriptors are 32 bytes."""
 MIN_FUNDAMENTAL_MATCHES = 8
 """RANSAC on the fundamental matrix needs at least 8 correspondences."""
+_HIGH_DTYPE = np.uint8 if WORD_BITS <= 16 else np.uint32
+"""High bits (above the low byte) of a stored word step that does not fit in a byte."""
+NORM_ROWS = 256
+"""Stored keyframes whose tf-idf norms are computed at a time (bounds the temporary arrays)."""
 
 
 @dataclass
@@ -151,20 +157,28 @@ class OrbRetrieval:
         )
         self._orb = cv2.ORB_create(nfeatures=int(self.config.orb_features))
 
-        # Database: one entry per stored keyframe.
-        self._frame_indices: list[int] = []
+        # Database: one entry per stored keyframe, rows [0, _count) of growable buffers.
+        self._count = 0
+        self._frame_indices = np.zeros(0, np.int64)
         self._submap_ids = np.zeros(0, np.int64)
-        self._keypoints: list[np.ndarray | None] = []  # None: spilled to the features file
-        self._descriptors: list[np.ndarray | None] = []
+        # (keypoints, descriptors) of positions _spilled.. in order; older ones are in the features file
+        self._in_ram: list[tuple[np.ndarray, np.ndarray]] = []
         self._spill: _FeatureFile | None = None  # see spill_features
         self._features_in_ram = 0  # keep this many newest keyframes' features in RAM (0: all)
         self._spilled = 0  # positions below this are in the file
         self._document_frequency = np.zeros(self.vocabulary_size, np.int32)
-        # Term-frequency matrix (stored keyframes x words) as growable CSR buffers.
+        # Term-frequency matrix (stored keyframes x words), encoded in growable buffers: each
+        # keyframe's words, one per descriptor and table, sorted, as byte steps with the rare larger
+        # steps' high bits aside (see _append_tf_row); _tf_indptr[r]:_tf_indptr[r + 1] are row r's
+        # steps. The CSR rows (word ids, term frequencies) are rebuilt where they are used (_entries).
         self._tf_indptr = np.zeros(1, np.int64)
-        self._tf_indices = np.zeros(0, np.int32)
-        self._tf_data = np.zeros(0, np.float32)
+        self._tf_steps = np.zeros(0, np.uint8)
         self._tf_nnz = 0
+        # the steps of 256 or more: row r's are _tf_high_indptr[r]:_tf_high_indptr[r + 1] of their
+        # positions within the row (ascending) and their high bits
+        self._tf_high_indptr = np.zeros(1, np.int64)
+        self._tf_high_offsets = np.zeros(0, np.uint16)  # widened to uint32 for a row of 2**16 steps or more
+        self._tf_high = np.zeros(0, _HIGH_DTYPE)
         # Inverted file (words x keyframes) over the first keyframes; see _inverted_file().
         self._inverted: scipy.sparse.csr_matrix | None = None
         self._idf: np.ndarray | None = None  # cached, see _idf_and_norms
@@ -179,7 +193,7 @@ class OrbRetrieval:
 
     def __len__(self) -> int:
         """Number of stored keyframes."""
-        return len(self._frame_indices)
+        return self._count
 
     def spill_features(self, folder: str | os.PathLike | None, in_ram: int) -> None:
         """Keep only the ``in_ram`` newest keyframes' keypoints and descriptors in RAM (about 38 kB
@@ -196,19 +210,19 @@ class OrbRetrieval:
 
     def _stored_features(self, position: int) -> tuple[np.ndarray, np.ndarray]:
         """``(keypoints (n, 2) float32, descriptors (n, 32) uint8)`` of the stored keyframe at ``position``."""
-        keypoints = self._keypoints[position]
-        if keypoints is not None:
-            return keypoints, self._descriptors[position]
+        if not 0 <= position < len(self):
+            raise IndexError(f"no stored keyframe at position {position} (stored: {len(self)})")
+        if position >= self._spilled:
+            return self._in_ram[position - self._spilled]
         return self._spill.read(position)
 
     def _spill_oldest(self) -> None:
         """Move the features of keyframes beyond the newest ``_features_in_ram`` to the file."""
         if self._spill is None:
             return
-        while len(self) - self._spilled > self._features_in_ram:
-            position = self._spilled
-            self._spill.write(position, self._keypoints[position], self._descriptors[position])
-            self._keypoints[position] = self._descriptors[position] = None
+        while len(self._in_ram) > self._features_in_ram:
+            keypoints, descriptors = self._in_ram.pop(0)
+            self._spill.write(self._spilled, keypoints, descriptors)
             self._spilled += 1
 
     def forget_query_features(self) -> None:
@@ -273,12 +287,14 @@ class OrbRetrieval:
         batch = [self._features(index, image) for index, image in zip(frame_indices, images)]
         self._pending.clear()
         for index, features in zip(frame_indices, batch):
-            self._frame_indices.append(int(index))
-            self._keypoints.append(features.keypoints)
-            self._descriptors.append(features.descriptors)
-            self._append_tf_row(features.word_ids, features.word_tf)
+            position = self._count
+            self._append_tf_row(position, features)  # checks the features before anything is stored
+            self._frame_indices = _room(self._frame_indices, position + 1, position)
+            self._frame_indices[position] = int(index)
+            self._in_ram.append((features.keypoints, features.descriptors))
             self._document_frequency[features.word_ids] += 1
-            self._append_global_row(_global_vector(features))
+            self._append_global_row(position, _global_vector(features))
+            self._count = position + 1
         self._submap_ids = np.concatenate([self._submap_ids, np.full(len(batch), int(submap_id), np.int64)])
         self._spill_oldest()
 
@@ -297,21 +313,18 @@ class OrbRetrieval:
         if count < self._spilled:  # only the newest keyframes are ever withdrawn, and they are in RAM
             raise ValueError(f"cannot rewind to {count} keyframes: the first {self._spilled} were spilled")
         if len(self) > count:
-            start = int(self._tf_indptr[count])
-            np.subtract.at(self._document_frequency, self._tf_indices[start: self._tf_nnz], 1)
-            del self._frame_indices[count:], self._keypoints[count:], self._descriptors[count:]
+            withdrawn = self._entries(np.arange(count, len(self)))[1]
+            np.subtract.at(self._document_frequency, withdrawn, 1)
+            del self._in_ram[count - self._spilled:]
+            self._count = count  # rows from here on are written again by the next add
         self._tf_nnz = int(mark["nnz"])
         self._tf_indptr, self._submap_ids = mark["indptr"], mark["submap_ids"]
         self._idf, self._stored_norm, self._inverted = mark["idf"], mark["stored_norm"], mark["inverted"]
         self._pending = dict(mark["pending"])
 
-    def _append_global_row(self, row: np.ndarray) -> None:
-        count = len(self._frame_indices) - 1  # the row's position (frame index already appended)
-        if count >= len(self._global):
-            grown = np.zeros((max(64, len(self._global) + len(self._global) // 4), GLOBAL_DIM), np.float32)
-            grown[: len(self._global)] = self._global
-            self._global = grown
-        self._global[count] = row
+    def _append_global_row(self, position: int, row: np.ndarray) -> None:
+        self._global = _room(self._global, position + 1, position)
+        self._global[position] = row
 
     def _query_weights(self, query_features: Sequence[OrbFeatures], idf: np.ndarray) -> tuple[scipy.sparse.csr_matrix, np.ndarray]:
         """Queries as ``(num_queries, V)`` CSR rows ``tf_q * idf^2`` (with the raw stored tf this gives
@@ -338,29 +351,100 @@ class OrbRetrieval:
         denominator = np.maximum(stored_norm[rows][:, None] * query_norm[None, :], 1e-12)
         return (dots / denominator).astype(np.float32)
 
-    def _append_tf_row(self, word_ids: np.ndarray, word_tf: np.ndarray) -> None:
-        needed = self._tf_nnz + len(word_ids)
-        if needed > len(self._tf_indices):  # grow geometrically: amortized O(1) per entry
-            capacity = max(needed, len(self._tf_indices) + len(self._tf_indices) // 4, 4096)  # 1.25x: less slack
-            grown_indices = np.zeros(capacity, np.int32)
-            grown_data = np.zeros(capacity, np.float32)
-            grown_indices[: self._tf_nnz] = self._tf_indices[: self._tf_nnz]
-            grown_data[: self._tf_nnz] = self._tf_data[: self._tf_nnz]
-            self._tf_indices, self._tf_data = grown_indices, grown_data
-        self._tf_indices[self._tf_nnz : needed] = word_ids
-        self._tf_data[self._tf_nnz : needed] = word_tf
+    def _append_tf_row(self, position: int, features: OrbFeatures) -> None:
+        """Store the words of ``features`` as row ``position`` of the term-frequency matrix.
+
+        The term frequencies are ``count / (WORD_TABLES * descriptors)`` (see :meth:`_words`): the
+        row is stored as the sorted words of every descriptor in every table (a word as often as
+        its count), table after table, each as its step from the previous word of its table (from
+        0 for a table's first) in one byte; a step of 256 or more (a table's first word, a gap in a
+        sparse table: a few percent) also has its high bits kept aside. The counts are recovered
+        from the term frequencies exactly, and checked to give back the same float32 values.
+        """
+        word_ids = np.asarray(features.word_ids)
+        word_tf = np.asarray(features.word_tf, np.float32)
+        descriptors = len(features.descriptors)
+        total = WORD_TABLES * descriptors
+        counts = np.rint(word_tf.astype(np.float64) * total).astype(np.int64)
+        if len(word_ids) and not (
+            counts.min() > 0 and np.array_equal((counts / total).astype(np.float32), word_tf)
+            and np.array_equal(np.bincount(word_ids >> WORD_BITS, counts, WORD_TABLES), np.full(WORD_TABLES, descriptors))
+        ):
+            raise ValueError("ORB term frequencies must be word counts over WORD_TABLES * descriptors, as extract() gives")
+        words = np.repeat(word_ids & ((1 << WORD_BITS) - 1), counts)  # (total,) table after table
+        steps = np.diff(words, prepend=0).astype(np.int64)
+        steps[::max(descriptors, 1)] = words[::max(descriptors, 1)]  # each table starts from 0
+        high = np.flatnonzero(steps >> 8)
+        if len(words) > np.iinfo(self._tf_high_offsets.dtype).max + 1:
+            self._tf_high_offsets = self._tf_high_offsets.astype(np.uint32)
+        needed = self._tf_nnz + len(words)
+        # grow by a quarter at a time: amortized O(1) per entry, at most 25 % slack
+        self._tf_steps = _room(self._tf_steps, needed, self._tf_nnz, minimum=4096)
+        self._tf_steps[self._tf_nnz : needed] = steps & 0xFF
+        first = int(self._tf_high_indptr[position])
+        highs = first + len(high)
+        self._tf_high_offsets = _room(self._tf_high_offsets, highs, first, minimum=4096)
+        self._tf_high = _room(self._tf_high, highs, first, minimum=4096)
+        self._tf_high_offsets[first:highs] = high
+        self._tf_high[first:highs] = steps[high] >> 8
+        self._tf_high_indptr = _room(self._tf_high_indptr, position + 2, position + 1)
+        self._tf_high_indptr[position + 1] = highs
         self._tf_nnz = needed
         self._tf_indptr = np.append(self._tf_indptr, needed)
 
-    def _rows_csr(self, first_row: int, values: np.ndarray | None = None) -> scipy.sparse.csr_matrix:
-        """Stored rows ``first_row:`` of the term-frequency matrix as ``(rows, V)`` CSR (views of
-        the buffers, no copy); ``values`` replaces the term frequencies of those rows."""
-        start, stop = int(self._tf_indptr[first_row]), self._tf_nnz
-        data = self._tf_data[start:stop] if values is None else values
-        return scipy.sparse.csr_matrix(
-            (data, self._tf_indices[start:stop], self._tf_indptr[first_row:] - start),
-            shape=(len(self) - first_row, self.vocabulary_size),
-        )
+    def _entries(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Stored rows ``rows`` (in any order) of the term-frequency matrix as CSR arrays ``(data,
+        indices, indptr)``: float32 term frequencies (computed as in :meth:`_words`: the same
+        values), int32 word ids ascending within a row, int64; decoded from the buffers, at a cost
+        that follows those rows' entries, not the database's."""
+        rows = np.asarray(rows, dtype=np.int64)
+        starts, stops = self._tf_indptr[rows], self._tf_indptr[rows + 1]
+        lengths = stops - starts
+        offsets = np.concatenate([[0], np.cumsum(lengths)])  # of each row's steps in the gathered ones
+        if len(rows) and rows[-1] - rows[0] == len(rows) - 1 and np.all(np.diff(rows) == 1):
+            positions = slice(int(starts[0]), int(stops[-1]))  # consecutive rows: one slice, no gather
+        else:
+            # positions starts[i] .. stops[i]-1 for every selected row, without a Python loop
+            positions = np.repeat(starts - offsets[:-1], lengths) + np.arange(offsets[-1])
+        steps = self._tf_steps[positions].astype(np.int64)
+        # the high bits of the rows' large steps
+        first, last = self._tf_high_indptr[rows], self._tf_high_indptr[rows + 1]
+        in_row = last - first
+        kept = np.repeat(first - np.cumsum(in_row) + in_row, in_row) + np.arange(in_row.sum())
+        within = self._tf_high_offsets[kept].astype(np.int64)
+        steps[within + np.repeat(offsets[:-1], in_row)] += self._tf_high[kept].astype(np.int64) << 8
+        # words: running sums of the steps within each table of each row
+        table_lengths = np.repeat(lengths // WORD_TABLES, WORD_TABLES)
+        table_starts = np.repeat(offsets[:-1], WORD_TABLES) + np.tile(np.arange(WORD_TABLES), len(rows)) * table_lengths
+        running = np.concatenate([[0], np.cumsum(steps)])
+        words = running[1:] - np.repeat(running[table_starts], table_lengths)
+        words += np.repeat(np.tile(np.arange(WORD_TABLES, dtype=np.int64) << WORD_BITS, len(rows)), table_lengths)
+        # distinct words (a zero step repeats the word, except at a table's start) and their counts
+        distinct = steps != 0
+        distinct[table_starts[table_lengths > 0]] = True
+        firsts = np.flatnonzero(distinct)
+        counts = np.diff(np.append(firsts, len(steps)))
+        indptr = np.concatenate([[0], np.cumsum(distinct)])[offsets]
+        totals = np.repeat(lengths.astype(np.float64), np.diff(indptr))
+        data = (counts.astype(np.float64) / totals).astype(np.float32)
+        return data, words[firsts].astype(np.int32), indptr
+
+    def _rows_csr(self, first_row: int) -> scipy.sparse.csr_matrix:
+        """Stored rows ``first_row:`` of the term-frequency matrix as ``(rows, V)`` CSR."""
+        data, indices, indptr = self._entries(np.arange(first_row, len(self)))
+        return scipy.sparse.csr_matrix((data, indices, indptr), shape=(len(self) - first_row, self.vocabulary_size))
+
+    def _norms(self, first_row: int, idf: np.ndarray) -> np.ndarray:
+        """tf-idf norms ``(rows,)`` float32 of the stored rows ``first_row:`` under ``idf``, a
+        block of NORM_ROWS rows at a time (each row's norm depends on that row only)."""
+        idf_squared = idf**2
+        norms = np.zeros(len(self) - first_row, np.float32)
+        for start in range(first_row, len(self), NORM_ROWS):
+            stop = min(start + NORM_ROWS, len(self))
+            data, indices, indptr = self._entries(np.arange(start, stop))
+            squares = scipy.sparse.csr_matrix((data * data, indices, indptr), shape=(stop - start, self.vocabulary_size))
+            norms[start - first_row : stop - first_row] = np.sqrt(squares @ idf_squared)
+        return norms
 
     def _idf_and_norms(self) -> tuple[np.ndarray, np.ndarray]:
         """Inverse document frequencies ``(V,)`` and stored tf-idf norms ``(num_stored,)``.
@@ -374,13 +458,9 @@ class OrbRetrieval:
         cached = 0 if self._idf is None else len(self._stored_norm)
         if self._idf is None or num_stored - cached > max(64, cached // 4):
             self._idf = np.log1p(num_stored / np.maximum(self._document_frequency, 1)).astype(np.float32)
-            term_frequency = self._tf_data[: self._tf_nnz]
-            self._stored_norm = np.sqrt(self._rows_csr(0, term_frequency * term_frequency) @ (self._idf**2))
+            self._stored_norm = self._norms(0, self._idf)
         elif cached < num_stored:
-            start = int(self._tf_indptr[cached])
-            term_frequency = self._tf_data[start : self._tf_nnz]
-            new_norms = np.sqrt(self._rows_csr(cached, term_frequency * term_frequency) @ (self._idf**2))
-            self._stored_norm = np.concatenate([self._stored_norm, new_norms])
+            self._stored_norm = np.concatenate([self._stored_norm, self._norms(cached, self._idf)])
         return self._idf, self._stored_norm
 
     def _dot_rows(self, rows: np.ndarray, weighted: scipy.sparse.csr_matrix) -> np.ndarray:
@@ -392,7 +472,7 @@ class OrbRetrieval:
         look-up table persist between calls (only the entries a call set are reset), and the compact
         matrix is built from int32 index arrays, which SciPy takes without converting them.
         """
-        data, indices, indptr = self._selected_entries(rows)
+        data, indices, indptr = self._entries(rows)
         if self._word_lookup is None:
             self._word_present = np.zeros(self.vocabulary_size, dtype=bool)
             self._word_lookup = np.full(self.vocabulary_size, -1, np.int32)
@@ -417,21 +497,9 @@ class OrbRetrieval:
             (data[shared], columns[shared], kept_before[indptr]), shape=(len(rows), len(query_words)))
         return compact_rows @ compact_query
 
-    def _selected_entries(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Stored rows ``rows`` of the term-frequency matrix as CSR arrays ``(data, indices, indptr)``
-        (float32, int32, int64), gathered straight from the buffers (cost follows those rows'
-        entries, not the database's)."""
-        rows = np.asarray(rows, dtype=np.int64)
-        starts, stops = self._tf_indptr[rows], self._tf_indptr[rows + 1]
-        lengths = stops - starts
-        indptr = np.concatenate([[0], np.cumsum(lengths)])
-        # positions starts[i] .. stops[i]-1 for every selected row, without a Python loop
-        positions = np.repeat(starts - indptr[:-1], lengths) + np.arange(indptr[-1])
-        return self._tf_data[positions], self._tf_indices[positions], indptr
-
     def _selected_rows_csr(self, rows: np.ndarray) -> scipy.sparse.csr_matrix:
         """Stored rows ``rows`` of the term-frequency matrix as ``(len(rows), V)`` CSR."""
-        data, indices, indptr = self._selected_entries(rows)
+        data, indices, indptr = self._entries(rows)
         return scipy.sparse.csr_matrix((data, indices, indptr), shape=(len(rows), self.vocabulary_size))
 
     def _inverted_file(self) -> tuple[scipy.sparse.csr_matrix | None, int]:
@@ -542,7 +610,7 @@ class OrbRetrieval:
         candidates = [
             LoopCandidate(
                 query_frame=int(frame_indices[column]),
-                match_frame=self._frame_indices[position],
+                match_frame=int(self._frame_indices[position]),
                 match_submap=int(self._submap_ids[position]),
                 distance=float(max(0.0, 1.0 - inliers / budget)),
             )
@@ -555,29 +623,38 @@ class OrbRetrieval:
 class _FeatureFile:
     """Keypoints and descriptors of stored keyframes in one append-only file, read back by position.
 
-    Each record is the keypoints' float32 bytes then the descriptors' uint8 bytes; the offsets and
-    counts stay in RAM (16 bytes a keyframe). The file is started empty; ``path`` ``None``: an
-    anonymous temporary file."""
+    Each record is the keypoints' float32 bytes then the descriptors' uint8 bytes; records are
+    written in position order, and their bounds stay in RAM (8 bytes a keyframe). The file is
+    started empty; ``path`` ``None``: an anonymous temporary file."""
 
     def __init__(self, path: Path | None) -> None:
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
         self.path = path
         self._file = open(path, "w+b") if path is not None else tempfile.TemporaryFile()
-        self._records: dict[int, tuple[int, int]] = {}  # position -> (offset, count)
+        self._bounds = np.zeros(1, np.int64)  # record p is bytes _bounds[p]:_bounds[p + 1]
+        self._written = 0
         self._end = 0
         self._unflushed = False
 
     def write(self, position: int, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
+        """Append the record of ``position``, the next one in order."""
+        if position != self._written:
+            raise ValueError(f"feature records are written in order: expected position {self._written}, got {position}")
         data = np.ascontiguousarray(keypoints, np.float32).tobytes() + np.ascontiguousarray(descriptors, np.uint8).tobytes()
         self._file.seek(self._end)
         self._file.write(data)
-        self._records[position] = (self._end, len(keypoints))
         self._end += len(data)
+        self._bounds = _room(self._bounds, position + 2, position + 1)
+        self._bounds[position + 1] = self._end
+        self._written += 1
         self._unflushed = True
 
     def read(self, position: int) -> tuple[np.ndarray, np.ndarray]:
-        offset, count = self._records[position]
+        if not 0 <= position < self._written:
+            raise KeyError(position)
+        offset = int(self._bounds[position])
+        count = (int(self._bounds[position + 1]) - offset) // (8 + 32)
         if self._unflushed:  # reads see the writes after a flush of the buffer
             self._file.flush()
             self._unflushed = False
@@ -586,6 +663,17 @@ class _FeatureFile:
         keypoints = np.frombuffer(data, np.float32, count * 2).reshape(count, 2)
         descriptors = np.frombuffer(data, np.uint8, count * 32, offset=count * 8).reshape(count, 32)
         return keypoints, descriptors
+
+
+def _room(buffer: np.ndarray, needed: int, used: int, minimum: int = 64) -> np.ndarray:
+    """``buffer`` when it has ``needed`` rows, else a copy of its first ``used`` rows in a buffer a
+    quarter larger (at least ``needed`` and ``minimum`` rows): amortized O(1) per row, at most 25 %
+    slack."""
+    if needed <= len(buffer):
+        return buffer
+    grown = np.zeros((max(needed, len(buffer) + len(buffer) // 4, minimum),) + buffer.shape[1:], buffer.dtype)
+    grown[:used] = buffer[:used]
+    return grown
 
 
 def _same_image(kept: np.ndarray, image: np.ndarray) -> bool:
