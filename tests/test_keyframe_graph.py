@@ -250,9 +250,8 @@ def test_revisits_of_closed_places_are_priors_on_keyframe_nodes() -> None:
 @pytest.mark.parametrize("design", ["keyframe", "submap"])
 def test_an_estimate_of_some_submaps_is_the_whole_estimate_restricted_to_them(design: str) -> None:
     """``world_estimate(submaps=...)`` (what the running metric frame reads for every completed link)
-    holds the transforms of the whole estimate for those submaps and their keyframes, and no others,
-    with and without a pending submap and the final polish: read node by node, equal to the full
-    back-substitution's to the wildfire threshold (1e-9), after a loop too."""
+    holds the very transforms of the whole estimate for those submaps and their keyframes, and no
+    others, with and without a pending submap and the final polish."""
     rng = np.random.default_rng(21)
     frames = [SubmapFrames(tuple(range(10 + 2 * k, 13 + 2 * k)), np.stack([np.eye(4), rigid(rng, 0.1, 0.2),
                                                                          rigid(rng, 0.1, 0.2)]), shared=k > 0)
@@ -260,26 +259,18 @@ def test_an_estimate_of_some_submaps_is_the_whole_estimate_restricted_to_them(de
     backend = make_backend(BackendConfig(graph=design))
     for k in range(5):
         backend.add_submap(k, None if k == 0 else normalize_sl4(rigid(rng, 0.1, 0.2)), None, frames=frames[k])
-        if k == 3:  # a loop that moves the chain
-            H = (np.linalg.inv(backend.H_world_submap(0)) @ backend.H_world_submap(3)
-                 @ normalize_sl4(rigid(np.random.default_rng(4), 0.05, 0.1)))
-            backend.add_loop(0, 3, normalize_sl4(H), np.eye(backend.generators().shape[0]) * 1e3)
         if k < 4:  # the last one pending: its initial guess
             backend.update()
     for final in (False, True):
         whole = backend.world_estimate(final=final)
         part = backend.world_estimate(final=final, submaps={1, 4})
         assert sorted(part.H_world_submap) == [1, 4]
-        pairs = [(part.H_world_submap[s], whole.H_world_submap[s]) for s in (1, 4)]
+        for s in (1, 4):
+            assert np.array_equal(part.H_world_submap[s], whole.H_world_submap[s])
         if design == "keyframe":
             assert set(part.H_world_keyframe) == set(frames[1].frame_indices[1:]) | set(frames[4].frame_indices[1:])
-            pairs += [(H, whole.H_world_keyframe[f]) for f, H in part.H_world_keyframe.items()]
-        for H, expected in pairs:
-            if final:
-                assert np.array_equal(H, expected)
-            else:
-                np.testing.assert_allclose(H, expected, rtol=0, atol=1e-8)
-        assert not np.allclose(pairs[0][0], backend.world_estimate(final=final, submaps={2}).H_world_submap[2])
+            for f, H in part.H_world_keyframe.items():
+                assert np.array_equal(H, whole.H_world_keyframe[f])
 
 
 def test_graph_setting() -> None:

@@ -106,7 +106,10 @@ class MetricFrame:
         if len(members) < self.config.min_keyframes:
             return RunningFrame(None, problem=f"too few keyframes for a running upgrade ({len(members)})")
         try:
-            # only the members' submaps: reading out the whole map's estimate costs O(map) per link
+            # only the members' transforms are read out (converting the whole map's costs O(map) per
+            # link); the estimate is still iSAM2's full back-substitution, which every reader of the
+            # map gets: reading nodes alone would leave iSAM2's step partly solved, and the run's bits
+            # would then depend on whether a viewer, a query or a checkpoint read the map meanwhile
             upgrade = self.estimate(members, self.backend.world_estimate(submaps={k.submap_id for k in members}))
         except (UserError, ValueError, np.linalg.LinAlgError) as exc:
             return RunningFrame(None, problem=f"no running upgrade: {exc}")

@@ -127,10 +127,8 @@ class Backend(ABC):
 
         Args:
             final: polish the whole graph first.
-            submaps: only these submaps and their keyframes (``None``: every one), at a cost that
-                follows them, not the map: without ``final``, each node's current iSAM2 estimate
-                read alone (equal to the whole estimate's to the wildfire threshold), as
-                :meth:`H_world_submap` reads it; with ``final``, the polished ones.
+            submaps: only these submaps and their keyframes (``None``: every one); each transform is
+                the one the whole estimate holds, without converting the rest of the map.
         """
 
     @property

@@ -54,17 +54,9 @@ class SL4PoseGraph(PoseGraph):
         return gtsam.PriorFactorSL4(key, Z, noise)
 
     def estimate_matrices(self, final: bool = False, nodes: Sequence[int] | None = None) -> np.ndarray:
-        """``(N, 4, 4)`` every node's estimate in insertion order, as GTSAM holds it (det 1): the
-        fast form of :meth:`estimates` (``final``: :meth:`final_estimates`) for graphs of thousands
-        of nodes, without a per-node normalization.
-
-        With ``nodes`` (and not ``final``): those nodes' current estimates, in that order, read one
-        by one as :meth:`estimate` reads them (without a full back-substitution: the cost follows
-        the nodes asked for, not the graph; they agree with the full one to the wildfire threshold)."""
-        if nodes is not None and not final:
-            keys = [self.key(self._check_id(node)) for node in nodes]
-            return np.array([(self._at(self._pending_values, key) if self._pending_values.exists(key)
-                              else self._estimate_one(key)).matrix() for key in keys], dtype=np.float64).reshape(-1, 4, 4)
+        """``(N, 4, 4)`` every node's estimate in insertion order (or those of ``nodes``, in that
+        order), as GTSAM holds it (det 1): the fast form of :meth:`estimates` (``final``:
+        :meth:`final_estimates`) for graphs of thousands of nodes, without a per-node normalization."""
         if final and (self._pending_factors.size() or self._pending_values.size()):
             self.update()
         if not self._isam.size():

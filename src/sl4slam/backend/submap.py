@@ -60,8 +60,6 @@ class SubmapBackend(Backend):
         return self.graph.estimate(submap_id)
 
     def world_estimate(self, final: bool = False, submaps: Collection[int] | None = None) -> WorldEstimate:
-        if submaps is not None and not final:  # node by node: the cost follows the submaps asked for
-            return WorldEstimate({s: self.graph.estimate(s) for s in self.graph.node_ids if s in submaps})
         estimates = self.graph.final_estimates() if final else self.graph.estimates()
         if submaps is not None:
             estimates = {s: H for s, H in estimates.items() if s in submaps}
