@@ -32,6 +32,20 @@ PHRASES = ["red mug", "a wooden chair", "the laptop on the desk", "potted plant"
            "the monitor", "black office chair with wheels"]
 
 
+def one_and_batched(embed, items: list) -> tuple[float, float]:
+    """Seconds per item of ``embed`` (a list in, embeddings out): the median over the items one at a
+    time, and one call on all of them divided by their count; one warm-up call first."""
+    embed(items[:1])
+    single = []
+    for item in items:
+        start = time.perf_counter()
+        embed([item])
+        single.append(time.perf_counter() - start)
+    start = time.perf_counter()
+    embed(items)
+    return statistics.median(single), (time.perf_counter() - start) / len(items)
+
+
 def frame(seed: int = 0):
     import numpy as np
 
@@ -48,26 +62,10 @@ def child_pe(threads: int, images: int) -> dict:
     embedder = make_embedder("pe-core-l14-336", random_init=True, batch=images)
     build = time.perf_counter() - start
     frames = [frame(i) for i in range(images)]
-    embedder.embed_images(frames[:1])
-    single = []
-    for image in frames:
-        start = time.perf_counter()
-        embedder.embed_images([image])
-        single.append(time.perf_counter() - start)
-    start = time.perf_counter()
-    embedder.embed_images(frames)
-    batched = (time.perf_counter() - start) / images
-    embedder.embed_texts(PHRASES[:1])
-    text_single = []
-    for phrase in PHRASES:
-        start = time.perf_counter()
-        embedder.embed_texts([phrase])
-        text_single.append(time.perf_counter() - start)
-    start = time.perf_counter()
-    embedder.embed_texts(PHRASES)
-    text_batched = (time.perf_counter() - start) / len(PHRASES)
-    return {"build_s": build, "image_s": statistics.median(single), "image_batched_s": batched,
-            "text_s": statistics.median(text_single), "text_batched_s": text_batched,
+    single, batched = one_and_batched(embedder.embed_images, frames)
+    text_single, text_batched = one_and_batched(embedder.embed_texts, PHRASES)
+    return {"build_s": build, "image_s": single, "image_batched_s": batched,
+            "text_s": text_single, "text_batched_s": text_batched,
             "parameters": sum(p.numel() for p in embedder.model.parameters()), "peak_rss": peak_rss_bytes()}
 
 

@@ -21,7 +21,8 @@ import time
 
 import numpy as np
 
-from harness import LapSource, make_pipeline, result_file, simulated_config, synthetic_world, write_report
+from harness import (LapSource, make_pipeline, parse_settings, result_file, simulated_config, synthetic_world,
+                     write_report)
 
 STAGES = ("retrieval", "points", "alignment", "loops", "backend", "store")
 RANGES = ((10, 20), (290, 300), (990, 1000), (2990, 3000))
@@ -37,17 +38,6 @@ def resident_mib() -> float:
     except OSError:
         pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
-def _setting(item: str) -> tuple[str, object]:
-    """``KEY=VALUE`` as a config key and a number where the value reads as one."""
-    key, _, value = item.partition("=")
-    for kind in (int, float):
-        try:
-            return key, kind(value)
-        except ValueError:
-            pass
-    return key, value
 
 
 def main() -> None:
@@ -72,7 +62,7 @@ def main() -> None:
         "submap.overlap": args.overlap,  # ... with one shared frame (the frames per forward set the cost)
         "overlap": False,  # one submap after the other: each submap's stages timed on their own
         **({"submap.keyframes_in_ram": args.keyframes_in_ram} if args.keyframes_in_ram is not None else {}),
-        **dict(_setting(item) for item in args.set),
+        **parse_settings(args.set, "--set"),
     })
     # the lap preloaded, so the benchmark does not time PNG decoding
     source = LapSource(open_source(str(synthetic_world(518, 294))), laps=10_000, preload=True)
