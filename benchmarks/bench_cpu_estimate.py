@@ -79,31 +79,12 @@ def run_child(args: list[str], threads: int, timeout: float) -> dict:
 
 def random_weights_file(name: str) -> Path:
     """The model's full-size network with seeded random weights, saved where ``--weights`` can read it
-    (VGGT's camera head biased to finite cameras, in bf16: ``bench_gpu_run.random_vggt``; a CPU run
-    computes in float32 whatever the file's precision)."""
-    import torch
+    (``bench_gpu_run.random_weights``: VGGT's camera head biased to finite cameras, in bf16; the
+    others as built; a CPU run computes in float32 whatever the file's precision)."""
+    from bench_gpu_run import random_weights
 
-    path = OUT / f"{name}_random.safetensors"
-    if path.exists():
-        return path
     OUT.mkdir(parents=True, exist_ok=True)
-    if name == "vggt":  # plain random weights decode non-finite intrinsics: every submap would be dropped
-        from bench_gpu_run import random_vggt
-
-        return random_vggt(path, {})
-    frontend = build_frontend(name)
-    model = frontend.model
-    if name == "vggt":
-        from sl4slam.models.vggt.weights import save_checkpoint
-    elif name.startswith("da3-"):
-        from sl4slam.models.da3 import save_checkpoint
-    else:
-        from sl4slam.models.pi3 import save_checkpoint
-    tmp = path.with_suffix(".tmp.safetensors")
-    with torch.no_grad():
-        save_checkpoint({k: v.contiguous() for k, v in model.state_dict().items()}, tmp, model.config)
-    os.replace(tmp, path)
-    return path
+    return random_weights(name, OUT / f"{name}_random.safetensors", dtype=None)
 
 
 def check_child(name: str, source: str, max_frames: int) -> dict:

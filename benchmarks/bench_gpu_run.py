@@ -22,8 +22,14 @@ bf16: the cost of a forward does not depend on the values) and runs in a fresh p
 - TUM fr1/desk, overlapped, within 8 GB: the process capped with
   ``torch.cuda.set_per_process_memory_fraction`` to 8 GiB and ``--max-memory 8`` (the planner picks
   the dense heads' chunk);
+- TUM fr1/desk, overlapped, with each other model that ``--models`` names (DA3, π³/Pi3X: full
+  size, random weights, bf16);
 - with ``--world-frames N``, the synthetic world (N frames at 640x480, rendered first: about 0.2 s
   a frame), VGGT bf16, overlapped.
+
+``--budget S`` bounds the whole call (a run that cannot start with a minute left is reported as
+not run), ``--runs 0,2`` makes only those runs and ``--profile`` writes each run's cProfile
+summary to ``DIR/profile-K.txt``. ``colors`` (here) times the map colours' two paths side by side.
 
 Each run reports input frames and keyframes per second over the whole run and over its last tenth
 (does it slow down as the map grows?), the median seconds per submap of every stage, the latency
@@ -55,7 +61,6 @@ import datetime
 import json
 import os
 import platform
-import resource
 import shutil
 import subprocess
 import sys
@@ -75,6 +80,8 @@ PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x
 TRAVEL_LIMIT = 64 * 2**20
 VGGT_SOTA_FPS = 8.4  # VGGT-SLAM 2.0's published speed on an RTX 3090, w = 16 (a different GPU)
 GIB = 2**30
+#: The models ``--models`` may name (the dry run builds every one but VGGT at full size).
+MODELS = ("vggt", "da3-small", "da3-base", "da3-large", "da3-giant", "pi3", "pi3x")
 #: The memory budget of the capped run, GiB (an 8 GB card).
 CAP_GB = 8.0
 #: The dry run's VGGT: the full model's structure (24-layer-deep aggregator replaced by 4), small widths.
@@ -195,17 +202,46 @@ def random_vggt(path: Path, model_config: dict) -> Path:
     return path
 
 
-def run_specs(tum: Path, max_frames: int, cap_gb: float) -> list[dict]:
-    """The runs on ``tum`` (its first ``max_frames``; 0: all), in order: what each child process is
-    told besides weights, device and output; the capped one within ``cap_gb`` GiB."""
-    base = {"source": str(tum), "overlap": True, "all_frames": False, "max_frames": max_frames,
+def random_weights(name: str, path: Path, model_config: dict | None = None, dtype: str | None = "bf16") -> Path:
+    """The full-size network of model ``name`` (one of :data:`MODELS`) with seeded random weights,
+    saved at ``path`` (made on the CPU; an existing file is reused).
+
+    Args:
+        model_config: VGGT only: its :class:`VGGTModelConfig` fields (``{}``: VGGT-1B).
+        dtype: "bf16" saves the weights in bfloat16 (what the GPU runs load); ``None`` as built.
+    """
+    if name == "vggt":
+        return random_vggt(path, model_config or {})
+    if not path.is_file():
+        import torch
+
+        from bench_models import build_frontend
+        if name.startswith("da3-"):
+            from sl4slam.models.da3 import save_checkpoint
+        else:
+            from sl4slam.models.pi3 import save_checkpoint
+        model = build_frontend(name).model
+        cast = (lambda v: v.to(torch.bfloat16)) if dtype == "bf16" else (lambda v: v)
+        tmp = path.with_suffix(".tmp.safetensors")
+        with torch.no_grad():
+            save_checkpoint({k: cast(v).contiguous() for k, v in model.state_dict().items()}, tmp, model.config)
+        os.replace(tmp, path)
+    return path
+
+
+def run_specs(tum: Path, max_frames: int, cap_gb: float, models: tuple[str, ...] = ("vggt",)) -> list[dict]:
+    """The runs on ``tum`` (its first ``max_frames``; 0: all), in the order of what matters most:
+    what each child process is told besides weights, device and output. VGGT overlapped, sequential
+    and within ``cap_gb`` GiB; each other model of ``models`` overlapped; VGGT with ``--all-frames``."""
+    base = {"source": str(tum), "frontend": "vggt", "overlap": True, "all_frames": False, "max_frames": max_frames,
             "max_memory_gb": 0.0, "memory_cap_gb": 0.0}
     return [
         {**base, "name": "TUM fr1/desk, overlapped"},
         {**base, "name": "TUM fr1/desk, sequential", "overlap": False},
-        {**base, "name": "TUM fr1/desk, overlapped, --all-frames", "all_frames": True},
         {**base, "name": f"TUM fr1/desk, overlapped, within {cap_gb:g} GB (--max-memory {cap_gb:g})",
          "max_memory_gb": cap_gb, "memory_cap_gb": cap_gb},
+        *({**base, "name": f"TUM fr1/desk, {name}, overlapped", "frontend": name} for name in models if name != "vggt"),
+        {**base, "name": "TUM fr1/desk, overlapped, --all-frames", "all_frames": True},
     ]
 
 
@@ -218,17 +254,18 @@ def one_run(spec: dict) -> dict:
     from sl4slam.resolve import resolve
     from sl4slam.runner import run_slam
 
-    from harness import TimedSource  # benchmarks/ is on sys.path: the script runs from there
+    from harness import TimedSource, peak_rss_bytes  # benchmarks/ is on sys.path: the script runs from there
 
     cuda = spec["device"] == "cuda"
     capped = cuda and spec["memory_cap_gb"] > 0
     if capped:
         total = torch.cuda.get_device_properties(0).total_memory
         torch.cuda.set_per_process_memory_fraction(min(1.0, spec["memory_cap_gb"] * GIB / total), 0)
-    config = SLAMConfig(frontend="vggt", device=spec["device"], overlap=spec["overlap"])
+    config = SLAMConfig(frontend=spec["frontend"], device=spec["device"], overlap=spec["overlap"])
     config.model.weights, config.model.dtype = spec["weights"], "bf16"
     config.model.max_memory_gb = spec["max_memory_gb"]
-    config.model.match_layer = min(config.model.match_layer, spec["model_depth"] - 1)
+    if spec["frontend"] == "vggt":  # the dry run's VGGT is shallower than the layer matched by default
+        config.model.match_layer = min(config.model.match_layer, spec["model_depth"] - 1)
     config.source.max_frames = spec["max_frames"]
     config.retrieval.kind = "orb"  # SALAD's weights are not here either; ORB needs none
     config.output.keyframes = "none"
@@ -244,14 +281,35 @@ def one_run(spec: dict) -> dict:
 
     if cuda:
         torch.cuda.reset_peak_memory_stats()
+    profiler = None
+    if spec.get("profile"):
+        import cProfile
+
+        profiler = cProfile.Profile()
+        profiler.enable()
     start = time.perf_counter()
     summary = run_slam(source, spec["out"], config, progress=False, overwrite=True, on_submap=on_submap,
                        all_frames=spec["all_frames"])
     seconds = time.perf_counter() - start
+    if profiler is not None:
+        write_profile(profiler, Path(spec["profile"]), f"{spec['name']}: {seconds:.1f} s")
     return summarize(spec["name"], seconds, len(arrivals), summary, finished, latencies,
-                     torch.cuda.max_memory_allocated() if cuda else None,
-                     resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+                     torch.cuda.max_memory_allocated() if cuda else None, peak_rss_bytes(),
                      spec["memory_cap_gb"] if capped else None)
+
+
+def write_profile(profiler, path: Path, title: str, lines: int = 45) -> None:
+    """The ``lines`` functions of ``profiler`` with the most time of their own, and those with the
+    most time including callees (threads other than the caller's are not seen), as text at ``path``."""
+    import io
+    import pstats
+
+    text = io.StringIO()
+    text.write(title + "\n")
+    stats = pstats.Stats(profiler, stream=text)
+    stats.sort_stats("tottime").print_stats(lines)
+    stats.sort_stats("cumulative").print_stats(lines)
+    path.write_text(text.getvalue())
 
 
 def summarize(name: str, seconds: float, frames: int, summary: dict, finished: list[tuple[float, int, int]],
@@ -315,8 +373,9 @@ def report(rows: list[dict], device: str, model: str, command: str, dry_run: boo
              + (" (after `prepare`)." if not dry_run else " (after `prepare`; the same install, child processes and "
                 "report as on the GPU, small: only the device and the sizes differ)."), "",
              "| run | frames | keyframes | submaps | s | frames/s | keyframes/s | frames/s last tenth | "
-             "frontend s/submap | model-free s/submap | latency median / max s | GPU peak GiB (cap) | host peak GiB |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "keyframes/s last tenth | frontend s/submap | model-free s/submap | latency median / max s | "
+             "GPU peak GiB (cap) | host peak GiB |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         if "error" in row:
             lines.append(f"| {row['name']} | failed: {row['error']} |")
@@ -326,6 +385,7 @@ def report(rows: list[dict], device: str, model: str, command: str, dry_run: boo
         gpu = _value(row["gpu_peak_gib"]) + (f" ({row['gpu_cap_gib']:g})" if row.get("gpu_cap_gib") else "")
         lines.append(f"| {row['name']} | {row['frames']} | {row['keyframes']} | {row['submaps']} | {row['seconds']} | "
                      f"{row['fps']} | {row['keyframes_per_s']} | {_value(row['fps_last_tenth'])} | "
+                     f"{_value(row['keyframes_per_s_last_tenth'])} | "
                      f"{stages.get('frontend', 0):.3f} | {model_free:.3f} | "
                      f"{_value(row['latency_s']['median'])} / {_value(row['latency_s']['max'])} | {gpu} | {row['host_peak_gib']} |")
     tum_rows = [r for r in rows if r["name"] == "TUM fr1/desk, overlapped" and "fps" in r]
@@ -340,8 +400,18 @@ def report(rows: list[dict], device: str, model: str, command: str, dry_run: boo
     return lines
 
 
-def run(out: Path, frames: int, dry_run: bool, timeout: float) -> int:
-    """The runs and their report in ``out``; returns the number of runs that failed."""
+def run(out: Path, frames: int, dry_run: bool, timeout: float, models: tuple[str, ...] = ("vggt",),
+        budget: float = 0.0, only: tuple[int, ...] = (), profile: bool = False) -> int:
+    """The runs and their report in ``out``; returns the number of runs that failed.
+
+    Args:
+        models: the models measured (:data:`MODELS`; VGGT's runs always).
+        budget: seconds the whole call may take (0: no limit): a run gets at most what is left, and
+            one that cannot start with a minute left is reported as not run.
+        only: the runs made, as indices into :func:`run_specs`'s list (empty: all).
+        profile: each run under cProfile, its top functions written to ``DIR/profile-K.txt``.
+    """
+    began = time.perf_counter()
     if not dry_run:
         require_gpu()
     install_site()
@@ -352,11 +422,10 @@ def run(out: Path, frames: int, dry_run: bool, timeout: float) -> int:
     model_config = DRY_MODEL if dry_run else {}
     work = Path(f"/tmp/sl4slam-{'dry' if dry_run else 'gpu'}")
     work.mkdir(exist_ok=True)
-    weights = random_vggt(work / "vggt_random_bf16.safetensors", model_config)
     from harness import synthetic_world
     from sl4slam.models.vggt.model import VGGTModelConfig
 
-    specs = run_specs(STAGE_DIR / "tum_rgbd_fr1_desk", DRY_FRAMES if dry_run else 0, CAP_GB)
+    specs = run_specs(STAGE_DIR / "tum_rgbd_fr1_desk", DRY_FRAMES if dry_run else 0, CAP_GB, models)
     if frames > 0:  # the synthetic world: rendered here, before the runs (about 0.2 s a frame on one core)
         size = DRY_WORLD if dry_run else {"frames": frames, "width": 640, "height": 480}
         world = synthetic_world(size["width"], size["height"], size["frames"], folder=work / "world")
@@ -366,18 +435,64 @@ def run(out: Path, frames: int, dry_run: bool, timeout: float) -> int:
     rows = []
     name = "CPU" if dry_run else torch.cuda.get_device_name(0)
     for k, spec in enumerate(specs):
-        spec = {**spec, "weights": str(weights), "out": str(work / f"run-{k}"), "device": device, "model_depth": depth}
+        if only and k not in only:
+            continue
+        left = budget - (time.perf_counter() - began) if budget > 0 else timeout
+        if left < 60:
+            rows.append({"name": spec["name"], "error": f"not run: the call's {budget:.0f} s were spent"})
+            print(f"bench_gpu_run: {spec['name']}: not run (budget spent)", flush=True)
+            continue
         started = time.perf_counter()
-        rows.append(child_run(spec, timeout))
+        weights = random_weights(spec["frontend"], work / f"{spec['frontend']}_random_bf16.safetensors", model_config)
+        spec = {**spec, "weights": str(weights), "out": str(work / f"run-{k}"), "device": device, "model_depth": depth,
+                "profile": str(out / f"profile-{k}.txt") if profile else ""}
+        rows.append(child_run(spec, min(timeout, left - (time.perf_counter() - started) - 10)))
         print(f"bench_gpu_run: {spec['name']}: {rows[-1].get('error') or 'done'} "
               f"({time.perf_counter() - started:.0f} s)", flush=True)
         (out / "gpu_run.json").write_text(json.dumps({"device": name, "dry_run": dry_run, "rows": rows}, indent=2))
-    model = "a small VGGT (bench_gpu_run.DRY_MODEL)" if dry_run else "VGGT-1B"
-    command = "python benchmarks/bench_gpu_run.py run " + ("--dry-run " if dry_run else "") + "--out DIR"
+    others = [m for m in models if m != "vggt"]
+    model = ("a small VGGT (bench_gpu_run.DRY_MODEL)" if dry_run else "VGGT-1B") + "".join(f", {m}" for m in others)
+    command = ("python benchmarks/bench_gpu_run.py run " + ("--dry-run " if dry_run else "")
+               + (f"--models {','.join(models)} " if others else "") + (f"--budget {budget:g} " if budget else "") + "--out DIR")
     lines = report(rows, name, model, command, dry_run)
     (out / "gpu_run.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return sum("error" in r for r in rows)
+
+
+def colour_paths(frames: int = 20) -> list[str]:
+    """Median ms per 640x480 frame of each model's map colours (``grid_colors``, read for every
+    keyframe when the map is written), the float round trip they took before against the uint8 path,
+    side by side in this process; the outputs are checked equal. Returns the Markdown lines."""
+    import statistics
+
+    import numpy as np
+
+    from harness import random_frames
+    from sl4slam.models.da3.preprocess import grid_uint8
+    from sl4slam.models.da3.preprocess import preprocess_images as da3_preprocess
+    from sl4slam.models.pi3.preprocess import preprocess_images as pi3_preprocess
+    from sl4slam.models.pi3.preprocess import resize_to_grid
+    from sl4slam.models.vggt.preprocess import channels_last, preprocess_images, preprocess_uint8, to_uint8_rgb
+
+    paths = {
+        "VGGT": (lambda im: to_uint8_rgb(preprocess_images([im])[0])[0], lambda im: channels_last(preprocess_uint8([im])[0])[0]),
+        "Depth Anything 3": (lambda im: da3_preprocess([im]).colors[0], lambda im: grid_uint8([im])[0][0]),
+        "π³ / Pi3X": (lambda im: pi3_preprocess([im])[1][0], lambda im: resize_to_grid([im])[0][0]),
+    }
+    images = random_frames(frames, seed=0)
+    lines = ["| model | float round trip, ms/frame | uint8, ms/frame | ratio |", "|---|---|---|---|"]
+    for name, (before, after) in paths.items():
+        times = {0: [], 1: []}
+        for image in images:
+            for which, path in ((0, before), (1, after)):
+                start = time.perf_counter()
+                colours = path(image)
+                times[which].append(time.perf_counter() - start)
+            assert np.array_equal(before(image), colours)
+        old, new = (1000 * statistics.median(times[k]) for k in (0, 1))
+        lines.append(f"| {name} | {old:.1f} | {new:.1f} | {new / old:.2f} |")
+    return lines
 
 
 def main() -> None:
@@ -389,6 +504,7 @@ def main() -> None:
     staging = verbs.add_parser("prepare", help="stage packages and TUM fr1/desk in .gpu/ (here)")
     staging.add_argument("--shared", type=Path, default=REPO.parent / "shared", help="the project's data folder")
     staging.add_argument("--jpeg-quality", type=int, default=75)
+    verbs.add_parser("colors", help="the map colours' cost per frame, before and after the uint8 path (here)")
     running = verbs.add_parser("run", help="the runs (on the GPU machine)")
     running.add_argument("--out", type=Path, required=True)
     running.add_argument("--world-frames", type=int, default=0,
@@ -396,11 +512,24 @@ def main() -> None:
     running.add_argument("--dry-run", action="store_true",
                          help="the same install, runs and report on the CPU, with a small model and short inputs")
     running.add_argument("--run-timeout", type=float, default=150.0, help="seconds one run may take")
+    running.add_argument("--models", default="vggt",
+                         help=f"comma-separated models to measure ({', '.join(MODELS)}); VGGT's runs always")
+    running.add_argument("--runs", default="", help="comma-separated indices of the runs to make (default all)")
+    running.add_argument("--profile", action="store_true", help="profile each run (cProfile; DIR/profile-K.txt)")
+    running.add_argument("--budget", type=float, default=0.0,
+                         help="seconds the whole call may take (0: no limit); runs that would not fit are reported as not run")
     args = parser.parse_args()
     if args.verb == "prepare":
         prepare(args.shared, args.jpeg_quality)
+    elif args.verb == "colors":
+        print("\n".join(colour_paths()))
     else:
-        raise SystemExit(1 if run(args.out, args.world_frames, args.dry_run, args.run_timeout) else 0)
+        models = tuple(m.strip() for m in args.models.split(",") if m.strip())
+        unknown = [m for m in models if m not in MODELS]
+        if unknown:
+            raise SystemExit(f"bench_gpu_run: unknown model {unknown[0]!r}; --models takes {', '.join(MODELS)}")
+        raise SystemExit(1 if run(args.out, args.world_frames, args.dry_run, args.run_timeout, models, args.budget,
+                                   tuple(int(k) for k in args.runs.split(",") if k.strip()), args.profile) else 0)
 
 
 if __name__ == "__main__":

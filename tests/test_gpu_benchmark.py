@@ -41,7 +41,8 @@ def tiny_run(bench, tmp_path_factory):
     work = tmp_path_factory.mktemp("gpu_bench")
     weights = bench.random_vggt(work / "tiny.safetensors", TINY)
     world = write_synthetic_sequence(work / "world", num_frames=24, width=128, height=96, seed=0)
-    spec = {**bench.run_specs(world, 0, bench.CAP_GB)[3], "weights": str(weights), "out": str(work / "run"),
+    capped = next(spec for spec in bench.run_specs(world, 0, bench.CAP_GB) if spec["memory_cap_gb"] > 0)
+    spec = {**capped, "weights": str(weights), "out": str(work / "run"),
             "device": "cpu", "model_depth": TINY["depth"]}
     return bench.child_run(spec, timeout=240), weights, world
 
@@ -87,7 +88,7 @@ def test_random_weights_give_finite_cameras_and_a_whole_run_reports(bench, tiny_
                          dry_run=True)
     assert lines[0].startswith("## Whole runs on a GPU: the dry run on the CPU")
     table = [line for line in lines if line.startswith(f"| {row['name']} |")]
-    assert len(table) == 1 and table[0].count("|") == 14
+    assert len(table) == 1 and table[0].count("|") == 15
     assert f"| {row['frames']} | {row['keyframes']} | {row['submaps']} |" in table[0]
     assert "| TUM fr1/desk, sequential | failed: UserError: a | in the message |" in lines
     assert lines[-1] == "1 of 2 runs finished; failed: TUM fr1/desk, sequential."
@@ -95,6 +96,28 @@ def test_random_weights_give_finite_cameras_and_a_whole_run_reports(bench, tiny_
                        "NVIDIA H100", "VGGT-1B", "run", dry_run=False)
     assert gpu[0] == "## Whole runs on a GPU (NVIDIA H100)" and "| 6.5 (8) |" in gpu[-3]
     assert "VGGT-SLAM 2.0's published 8.4" in gpu[-1]
+
+
+def test_each_model_named_gets_its_run_and_an_unknown_one_is_one_line(bench, tmp_path):
+    specs = bench.run_specs(tmp_path, 0, bench.CAP_GB, ("vggt", "da3-small", "pi3x"))
+    assert [s["frontend"] for s in specs] == ["vggt", "vggt", "vggt", "da3-small", "pi3x", "vggt"]
+    assert [s["name"] for s in specs][:3] == ["TUM fr1/desk, overlapped", "TUM fr1/desk, sequential",
+                                              "TUM fr1/desk, overlapped, within 8 GB (--max-memory 8)"]
+    assert all(s["overlap"] for s in specs[3:]) and specs[-1]["all_frames"]
+    proc = subprocess.run([sys.executable, str(SCRIPT), "run", "--dry-run", "--models", "vggt,da3-tiny", "--out",
+                           str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 1 and len(lines) == 1 and "'da3-tiny'" in lines[0] and "da3-small" in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_spent_budget_reports_the_runs_it_did_not_make(bench, tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(SCRIPT.parent))  # the script's own imports (its harness)
+    monkeypatch.setattr(bench, "install_site", lambda: None)
+    monkeypatch.setattr(bench, "child_run", lambda spec, timeout: pytest.fail("no run fits a 30 s budget"))
+    assert bench.run(tmp_path / "out", 0, True, 60.0, ("vggt",), budget=30.0, only=(0, 2)) == 2
+    report = (tmp_path / "out" / "gpu_run.md").read_text()
+    assert report.count("failed: not run: the call's 30 s were spent") == 2 and "sequential" not in report
 
 
 def test_a_failing_child_run_is_one_row_with_its_last_line(bench, tiny_run, tmp_path):

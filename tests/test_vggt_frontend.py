@@ -71,6 +71,7 @@ def test_reconstruct_returns_the_model_outputs_on_its_grid(tiny_model):
     # Exactly what the model gives for the preprocessed images, decoded on the grid.
     images, _ = preprocess_images([f.rgb for f in frames], mode="crop")
     np.testing.assert_array_equal(prediction.colors, to_uint8_rgb(images))
+    np.testing.assert_array_equal(prediction.colors[1], frontend.grid_colors(frames[1]))  # the map's colours
     with torch.inference_mode():
         raw = tiny_model(images)
     np.testing.assert_allclose(prediction.depth, raw["depth"][0, ..., 0].numpy(), rtol=1e-6, atol=0)

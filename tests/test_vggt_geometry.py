@@ -18,7 +18,8 @@ from sl4slam.models.vggt.pose_encoding import (
     pose_encoding_to_extri_intri,
     quat_to_mat,
 )
-from sl4slam.models.vggt.preprocess import preprocess_images, preprocess_images_square, to_uint8_rgb
+from sl4slam.models.vggt.preprocess import (channels_last, preprocess_images, preprocess_images_square, preprocess_uint8,
+                                            to_uint8_rgb)
 
 IMAGE_HW = (294, 518)
 
@@ -105,6 +106,9 @@ def test_preprocessing_is_exact(preprocess_fixture, key):
     assert batch.dtype == torch.float32 and tuple(batch.shape) == tuple(call["shape"])
     assert torch.equal(batch, expected)
     assert np.array_equal(to_uint8_rgb(batch), outputs[key].permute(0, 2, 3, 1).numpy())
+    grid, grid_transforms = preprocess_uint8([images[name] for name in call["inputs"]], **call["kwargs"])
+    assert grid.dtype == torch.uint8 and torch.equal(grid, outputs[key])  # white padding 255, crops the same
+    assert np.array_equal(channels_last(grid), to_uint8_rgb(batch)) and grid_transforms == transforms
     assert len(transforms) == len(call["inputs"])
     for transform in transforms:
         assert transform.output_hw == tuple(call["shape"][2:])

@@ -284,3 +284,25 @@ def test_missing_weights_give_one_clear_message(tmp_path):
     # A hub id that is not cached, with downloads disabled: no network is touched.
     with pytest.raises(MissingWeightsError, match="--weights PATH"):
         load_vggt("facebook/VGGT-1B", cache_dir=tmp_path / "hub", local_files_only=True)
+
+
+def test_rope_reads_each_positions_tensor_once_and_never_a_stale_length(monkeypatch):
+    """The largest position is read once per positions tensor (each read waits for a GPU); a new
+    tensor, even one at a freed tensor's address, is read again."""
+    from sl4slam.models.vggt.rope import RotaryPositionEmbedding2D, patch_positions
+
+    rope, fresh = RotaryPositionEmbedding2D(), RotaryPositionEmbedding2D
+    tokens = torch.randn(1, 2, 5 + 4 * 6, 8)
+    reads = []
+    original = torch.Tensor.max
+    monkeypatch.setattr(torch.Tensor, "max", lambda self, *a, **k: reads.append(1) or original(self, *a, **k))
+    positions = patch_positions(1, 4, 6, 5, "cpu")
+    first = rope(tokens, positions)
+    assert torch.equal(rope(tokens, positions), first) and len(reads) == 1
+    assert torch.equal(first, fresh()(tokens, positions))
+    del positions
+    for rows, cols in ((4, 6), (3, 8), (2, 12)):  # a new tensor may take the freed one's address
+        bigger = patch_positions(1, rows, cols, 5, "cpu")
+        assert torch.equal(rope(tokens, bigger), fresh()(tokens, bigger))
+        del bigger
+    assert len(reads) == 2 + 3 * 2  # each tensor once by ``rope``, once by its fresh module

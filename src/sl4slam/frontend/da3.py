@@ -41,6 +41,7 @@ from ..models.da3.model import DepthAnything3
 from ..models.da3.preprocess import (
     PROCESS_RES,
     Preprocessed,
+    grid_uint8,
     intrinsics_on_grid,
     preprocess_images,
 )
@@ -135,11 +136,11 @@ class DA3Frontend:
 
     def preprocess(self, frames: Sequence[Frame]) -> Preprocessed:
         """The frames on the model's grid (images, colours and the mapping of each frame)."""
-        return preprocess_images([frame.rgb for frame in frames], self.process_res)
+        return preprocess_images([frame.rgb for frame in frames], self.process_res, device=self.device)
 
     def grid_colors(self, frame: Frame) -> np.ndarray:
         """``(H, W, 3)`` uint8 colours of ``frame`` on the model's grid (the preprocessing, without the model)."""
-        return self.preprocess([frame]).colors[0]
+        return grid_uint8([frame.rgb], self.process_res)[0][0]
 
     def _generator(self) -> torch.Generator:
         return torch.Generator(device=self.device).manual_seed(RAY_SEED)

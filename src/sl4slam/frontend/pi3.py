@@ -49,6 +49,7 @@ from ..models.pi3.preprocess import (
     PIXEL_BUDGET,
     ResizeTransform,
     preprocess_images,
+    resize_to_grid,
 )
 from ..models.pi3.weights import WEIGHTS_SOURCES
 from ..models.precision import cuda_native_bf16, resolve_mode, settle_mode
@@ -176,7 +177,7 @@ class Pi3Frontend:
 
     def grid_colors(self, frame: Frame) -> np.ndarray:
         """``(H, W, 3)`` uint8 colours of ``frame`` on the model's grid (the preprocessing alone)."""
-        return preprocess_images([frame.rgb], self.budget)[1][0]
+        return resize_to_grid([frame.rgb], self.budget)[0][0]
 
     def reconstruct(self, frames: Sequence[Frame], submap_id: int, match_pairs: Sequence[tuple[int, int]] = (),
                     intrinsics: np.ndarray | None = None) -> SubmapPrediction:
@@ -196,7 +197,7 @@ class Pi3Frontend:
         """
         if len(frames) == 0:
             raise ValueError("reconstruct needs at least one frame")
-        images, colours, transforms = preprocess_images([frame.rgb for frame in frames], self.budget)
+        images, colours, transforms = preprocess_images([frame.rgb for frame in frames], self.budget, device=self.device)
         self.last_transforms = transforms
         height, width = images.shape[-2:]
         model_K = None

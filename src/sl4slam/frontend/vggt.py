@@ -41,7 +41,7 @@ from ..models.vggt.model import VGGT
 from ..models.vggt.pose_encoding import pose_encoding_to_extri_intri
 from ..models.precision import settle_mode
 from ..models.vggt.precision import MODES, Precision, apply_precision, resolve_precision
-from ..models.vggt.preprocess import GridTransform, preprocess_images, to_uint8_rgb
+from ..models.vggt.preprocess import GridTransform, channels_last, preprocess_uint8
 from ..registry import FrontendEntry
 from ..types import Frame, FrontendCapabilities, SubmapPrediction
 from .device import resolve_device  # noqa: F401  (part of this module's API)
@@ -188,8 +188,8 @@ class VGGTFrontend:
 
     def grid_colors(self, frame: Frame) -> np.ndarray:
         """``(H, W, 3)`` uint8 colours of ``frame`` on the model's grid (the preprocessing, without the model)."""
-        images, _ = preprocess_images([frame.rgb], mode=self.config.preprocess_mode)
-        return to_uint8_rgb(images)[0]
+        grid, _ = preprocess_uint8([frame.rgb], mode=self.config.preprocess_mode)
+        return channels_last(grid)[0]
 
     def reconstruct(self, frames: Sequence[Frame], submap_id: int,
                     match_pairs: Sequence[tuple[int, int]] = ()) -> SubmapPrediction:
@@ -202,8 +202,10 @@ class VGGTFrontend:
         """
         if len(frames) == 0:
             raise ValueError("reconstruct needs at least one frame")
-        images, transforms = preprocess_images([frame.rgb for frame in frames], mode=self.config.preprocess_mode)
+        grid, transforms = preprocess_uint8([frame.rgb for frame in frames], mode=self.config.preprocess_mode)
         self.last_transforms = transforms
+        # uint8 to the device, then / 255 there (a quarter of the bytes to copy, no host float pass)
+        images = grid.to(self.device).to(torch.float32).div(255)
         outputs = self.predict(images, match_pairs)
         height, width = images.shape[-2:]
         extrinsics, intrinsics = pose_encoding_to_extri_intri(outputs["pose_enc"][0].double().cpu(), (height, width))
@@ -212,7 +214,7 @@ class VGGTFrontend:
             confidence=outputs["depth_conf"][0].float().cpu().numpy(),
             T_cam_submap=extrinsics.numpy().astype(np.float64),
             K=intrinsics.numpy().astype(np.float64),
-            colors=to_uint8_rgb(images),
+            colors=channels_last(grid),
             principal_point=np.tile([width / 2.0, height / 2.0], (len(frames), 1)),
             image_to_grid=np.stack([grid_affine(t) for t in transforms]),
         )

@@ -86,11 +86,13 @@ def to_patch_multiple(image: np.ndarray, crop: bool, patch: int = PATCH_SIZE) ->
     return _resize(image, new_width, new_height, new_width > width or new_height > height), (0, 0)
 
 
-def normalize_uint8(colors: np.ndarray) -> torch.Tensor:
-    """Step 4: ``(S, H, W, 3)`` uint8 -> ``(S, 3, H, W)`` float32 ``(x / 255 - mean) / std``."""
-    planes = torch.from_numpy(np.ascontiguousarray(colors)).permute(0, 3, 1, 2).contiguous().to(torch.float32).div(255)
-    mean = torch.as_tensor(IMAGE_MEAN, dtype=torch.float32).view(1, 3, 1, 1)
-    std = torch.as_tensor(IMAGE_STD, dtype=torch.float32).view(1, 3, 1, 1)
+def normalize_uint8(colors: np.ndarray, device: torch.device | str = "cpu") -> torch.Tensor:
+    """Step 4: ``(S, H, W, 3)`` uint8 -> ``(S, 3, H, W)`` float32 ``(x / 255 - mean) / std``, computed
+    on ``device`` (the uint8 copied there first)."""
+    planes = torch.from_numpy(np.ascontiguousarray(colors)).permute(0, 3, 1, 2).contiguous().to(device)
+    planes = planes.to(torch.float32).div(255)
+    mean = torch.as_tensor(IMAGE_MEAN, dtype=torch.float32, device=device).view(1, 3, 1, 1)
+    std = torch.as_tensor(IMAGE_STD, dtype=torch.float32, device=device).view(1, 3, 1, 1)
     return planes.sub_(mean).div_(std)
 
 
@@ -102,14 +104,23 @@ def _check_rgb(image: np.ndarray) -> np.ndarray:
 
 
 def preprocess_images(images: Sequence[np.ndarray], process_res: int = PROCESS_RES,
-                      method: str = "upper_bound_resize") -> Preprocessed:
+                      method: str = "upper_bound_resize", device: torch.device | str = "cpu") -> Preprocessed:
     """Put ``(H, W, 3)`` uint8 RGB images on the model's grid (steps 1-4 of the module docstring).
 
     Args:
         images: the frames, any sizes.
         process_res: the bound of step 1 (504 in the authors' API).
         method: one of :data:`METHODS` ("upper_bound_resize" in the authors' API).
+        device: where the normalised images are made (and stay).
     """
+    colors, transforms = grid_uint8(images, process_res, method)
+    return Preprocessed(images=normalize_uint8(colors, device), colors=colors, transforms=transforms)
+
+
+def grid_uint8(images: Sequence[np.ndarray], process_res: int = PROCESS_RES,
+               method: str = "upper_bound_resize") -> tuple[np.ndarray, list[GridTransform]]:
+    """Steps 1-3 of the module docstring: ``(S, H, W, 3)`` uint8 colours on the model's grid and how
+    each image maps onto it (arguments as :func:`preprocess_images`)."""
     if len(images) == 0:
         raise ValueError("at least one image is required")
     if method not in METHODS:
@@ -136,8 +147,7 @@ def preprocess_images(images: Sequence[np.ndarray], process_res: int = PROCESS_R
         colors.append(image[top:top + out_height, left:left + out_width])
         transforms.append(GridTransform(input_hw, (out_height, out_width), scale_x, scale_y, offset_x - left,
                                         offset_y - top, (0, 0, out_width, out_height)))
-    stacked = np.stack(colors)
-    return Preprocessed(images=normalize_uint8(stacked), colors=stacked, transforms=transforms)
+    return np.stack(colors), transforms
 
 
 def intrinsics_on_grid(intrinsics: np.ndarray, transform: GridTransform) -> np.ndarray:

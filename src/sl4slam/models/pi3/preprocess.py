@@ -173,25 +173,34 @@ def _check_rgb(image: np.ndarray) -> np.ndarray:
     return image
 
 
-def preprocess_images(images: Sequence[np.ndarray], budget: int = PIXEL_BUDGET,
-                      size: tuple[int, int] | None = None) -> tuple[torch.Tensor, np.ndarray, list[ResizeTransform]]:
+def preprocess_images(images: Sequence[np.ndarray], budget: int = PIXEL_BUDGET, size: tuple[int, int] | None = None,
+                      device: torch.device | str = "cpu") -> tuple[torch.Tensor, np.ndarray, list[ResizeTransform]]:
     """Resize images for π³ as the authors' loader does.
 
     Args:
         images: ``(H, W, 3)`` uint8 RGB arrays (sizes may differ; the first one sets the grid).
         budget: pixel budget of the grid.
         size: ``(W, H)`` of the grid, instead of :func:`target_size` of the first image.
+        device: where the float images are made (the uint8 copied there first).
 
     Returns:
-        ``(S, 3, H, W)`` float32 in [0, 1] (``uint8 / 255`` exactly), the same images as
-        ``(S, H, W, 3)`` uint8, and one :class:`ResizeTransform` per image.
+        ``(S, 3, H, W)`` float32 in [0, 1] (``uint8 / 255`` exactly) on ``device``, the same images
+        as ``(S, H, W, 3)`` uint8, and one :class:`ResizeTransform` per image.
     """
+    resized, transforms = resize_to_grid(images, budget, size)
+    tensor = torch.from_numpy(resized).permute(0, 3, 1, 2).contiguous().to(device).to(torch.float32).div(255)
+    return tensor, resized, transforms
+
+
+def resize_to_grid(images: Sequence[np.ndarray], budget: int = PIXEL_BUDGET,
+                   size: tuple[int, int] | None = None) -> tuple[np.ndarray, list[ResizeTransform]]:
+    """The images resized onto π³'s grid, ``(S, H, W, 3)`` uint8, and one :class:`ResizeTransform`
+    per image (arguments as :func:`preprocess_images`)."""
     if len(images) == 0:
         raise ValueError("at least one image is required")
     images = [_check_rgb(image) for image in images]
     width, height = size if size is not None else target_size(images[0].shape[1], images[0].shape[0], budget)
     resized = np.stack([resize_lanczos(image, width, height) for image in images])
-    tensor = torch.from_numpy(resized).permute(0, 3, 1, 2).contiguous().to(torch.float32).div(255)
     transforms = [ResizeTransform((image.shape[0], image.shape[1]), (height, width), width / image.shape[1],
                                   height / image.shape[0]) for image in images]
-    return tensor, resized, transforms
+    return resized, transforms

@@ -97,7 +97,24 @@ def _resized_size(width: int, height: int, mode: str) -> tuple[int, int]:
 def preprocess_images(
     images: Sequence[np.ndarray | str | Path | Image.Image], mode: str = "crop"
 ) -> tuple[torch.Tensor, list[GridTransform]]:
-    """Resize images for VGGT.
+    """Resize images for VGGT: :func:`preprocess_uint8`, then ``/ 255`` in float32.
+
+    Args:
+        images: ``(H, W, 3)`` RGB or ``(H, W, 4)`` RGBA uint8 arrays, PIL images or file paths.
+        mode: "crop" or "pad".
+
+    Returns:
+        ``(N, 3, H', W')`` float32 in [0, 1] (``uint8 / 255`` exactly) and one
+        :class:`GridTransform` per image.
+    """
+    batch, transforms = preprocess_uint8(images, mode)
+    return batch.to(torch.float32).div(255), transforms
+
+
+def preprocess_uint8(
+    images: Sequence[np.ndarray | str | Path | Image.Image], mode: str = "crop"
+) -> tuple[torch.Tensor, list[GridTransform]]:
+    """Resize images onto VGGT's grid, in uint8 (the model's input is this ``/ 255``).
 
     - "crop": width becomes 518, height keeps the aspect ratio rounded to a multiple of 14, and
       rows beyond 518 are centre-cropped.
@@ -111,8 +128,7 @@ def preprocess_images(
         mode: "crop" or "pad".
 
     Returns:
-        ``(N, 3, H', W')`` float32 in [0, 1] (``uint8 / 255`` exactly) and one
-        :class:`GridTransform` per image.
+        ``(N, 3, H', W')`` uint8 (padding 255) and one :class:`GridTransform` per image.
     """
     if len(images) == 0:
         raise ValueError("at least one image is required")
@@ -126,7 +142,7 @@ def preprocess_images(
         width, height = pil.size
         new_w, new_h = _resized_size(width, height, mode)
         resized = np.asarray(pil.resize((new_w, new_h), Image.Resampling.BICUBIC))
-        plane = torch.from_numpy(resized.copy()).permute(2, 0, 1).to(torch.float32).div(255)
+        plane = torch.from_numpy(resized.copy()).permute(2, 0, 1)
         offset_x, offset_y = 0.0, 0.0
         if mode == "crop" and new_h > TARGET_SIZE:
             top = (new_h - TARGET_SIZE) // 2
@@ -160,13 +176,15 @@ def preprocess_images(
 
 
 def _pad_white(plane: torch.Tensor, height: int, width: int) -> tuple[torch.Tensor, tuple[int, int]]:
-    """Centre a ``(3, h, w)`` plane on a white ``(3, height, width)`` canvas; returns it and (left, top)."""
+    """Centre a ``(3, h, w)`` plane on a white ``(3, height, width)`` canvas (255 for uint8, else 1.0);
+    returns it and (left, top)."""
     pad_h = height - plane.shape[1]
     pad_w = width - plane.shape[2]
     if pad_h <= 0 and pad_w <= 0:
         return plane, (0, 0)
     top, left = pad_h // 2, pad_w // 2
-    padded = torch.nn.functional.pad(plane, (left, pad_w - left, top, pad_h - top), mode="constant", value=1.0)
+    padded = torch.nn.functional.pad(plane, (left, pad_w - left, top, pad_h - top), mode="constant",
+                                     value=255 if plane.dtype == torch.uint8 else 1.0)
     return padded, (left, top)
 
 
@@ -200,6 +218,11 @@ def preprocess_images_square(
         resized = np.asarray(square.resize((target_size, target_size), Image.Resampling.BICUBIC))
         planes.append(torch.from_numpy(resized.copy()).permute(2, 0, 1).to(torch.float32).div(255))
     return torch.stack(planes), torch.from_numpy(np.array(coords, dtype=np.float64)).float()
+
+
+def channels_last(images: torch.Tensor) -> np.ndarray:
+    """``(N, 3, H, W)`` uint8 (as :func:`preprocess_uint8` makes them) to ``(N, H, W, 3)`` uint8 RGB."""
+    return np.ascontiguousarray(images.permute(0, 2, 3, 1).numpy())
 
 
 def to_uint8_rgb(images: torch.Tensor) -> np.ndarray:

@@ -9,6 +9,8 @@ angles ``a = pos * inv_freq`` duplicated as ``[a, a]``.
 
 from __future__ import annotations
 
+import weakref
+
 import torch
 from torch import Tensor, nn
 
@@ -37,6 +39,18 @@ class RotaryPositionEmbedding2D(nn.Module):
         super().__init__()
         self.base = float(base)
         self._cache: dict[tuple, tuple[Tensor, Tensor]] = {}
+        self._lengths: dict[int, tuple[weakref.ref, int]] = {}
+
+    def _length(self, positions: Tensor) -> int:
+        """1 + the largest entry of ``positions``, read once per positions tensor: on a GPU each read
+        waits for all queued work, and every block of a forward is handed the same tensor."""
+        hit = self._lengths.get(id(positions))
+        if hit is not None and hit[0]() is positions:
+            return hit[1]
+        length = int(positions.max()) + 1
+        self._lengths = {key: value for key, value in self._lengths.items() if value[0]() is not None}
+        self._lengths[id(positions)] = (weakref.ref(positions), length)
+        return length
 
     def _tables(self, half_dim: int, length: int, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
         """cos/sin tables ``(length, half_dim)`` for positions ``0..length-1``."""
@@ -64,7 +78,7 @@ class RotaryPositionEmbedding2D(nn.Module):
         if tokens.shape[-1] % 4 != 0:
             raise ValueError(f"RoPE 2D needs a head dimension divisible by 4, got {tokens.shape[-1]}")
         half_dim = tokens.shape[-1] // 2
-        cos, sin = self._tables(half_dim, int(positions.max()) + 1, tokens.device, tokens.dtype)
+        cos, sin = self._tables(half_dim, self._length(positions), tokens.device, tokens.dtype)
         rows_part, cols_part = tokens.chunk(2, dim=-1)
         return torch.cat(
             [self._rotate(rows_part, positions[..., 0], cos, sin), self._rotate(cols_part, positions[..., 1], cos, sin)],
