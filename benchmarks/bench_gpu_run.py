@@ -336,6 +336,8 @@ def summarize(name: str, seconds: float, frames: int, summary: dict, finished: l
         "fps_last_tenth": round((finished[-1][1] - tail[1]) / last_seconds, 2) if last_seconds > 0 else None,
         "keyframes_per_s_last_tenth": round((finished[-1][2] - tail[2]) / last_seconds, 2) if last_seconds > 0 else None,
         "per_submap_median_s": summary["seconds"]["per_submap_median"],
+        # before the first frame (loading the model) and after the graph (writing the map and files)
+        "outside_loop_s": round(seconds - summary["seconds"]["total"], 2),
         "latency_s": {"median": round(float(np.median(latencies)), 3) if latencies else None,
                       "max": round(float(np.max(latencies)), 3) if latencies else None},
         "gpu_peak_gib": None if gpu_peak_bytes is None else round(gpu_peak_bytes / GIB, 2),
@@ -373,9 +375,9 @@ def report(rows: list[dict], device: str, model: str, command: str, dry_run: boo
              + (" (after `prepare`)." if not dry_run else " (after `prepare`; the same install, child processes and "
                 "report as on the GPU, small: only the device and the sizes differ)."), "",
              "| run | frames | keyframes | submaps | s | frames/s | keyframes/s | frames/s last tenth | "
-             "keyframes/s last tenth | frontend s/submap | model-free s/submap | latency median / max s | "
+             "keyframes/s last tenth | loading + outputs s | frontend s/submap | model-free s/submap | latency median / max s | "
              "GPU peak GiB (cap) | host peak GiB |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         if "error" in row:
             lines.append(f"| {row['name']} | failed: {row['error']} |")
@@ -385,7 +387,7 @@ def report(rows: list[dict], device: str, model: str, command: str, dry_run: boo
         gpu = _value(row["gpu_peak_gib"]) + (f" ({row['gpu_cap_gib']:g})" if row.get("gpu_cap_gib") else "")
         lines.append(f"| {row['name']} | {row['frames']} | {row['keyframes']} | {row['submaps']} | {row['seconds']} | "
                      f"{row['fps']} | {row['keyframes_per_s']} | {_value(row['fps_last_tenth'])} | "
-                     f"{_value(row['keyframes_per_s_last_tenth'])} | "
+                     f"{_value(row['keyframes_per_s_last_tenth'])} | {_value(row.get('outside_loop_s'))} | "
                      f"{stages.get('frontend', 0):.3f} | {model_free:.3f} | "
                      f"{_value(row['latency_s']['median'])} / {_value(row['latency_s']['max'])} | {gpu} | {row['host_peak_gib']} |")
     tum_rows = [r for r in rows if r["name"] == "TUM fr1/desk, overlapped" and "fps" in r]

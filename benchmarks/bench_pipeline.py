@@ -83,8 +83,10 @@ def main() -> None:
         if done % 10 == 0:
             rss_trace.append((len(pipeline.keyframes), resident_mib()))
             submap_trace.append(done)
+            recent = [sum(s.get(k, 0.0) for k in STAGES) for s in pipeline.ledger.submap_seconds[-10:]]
             print(f"submap {done}: {time.perf_counter() - start:.0f} s, loops {pipeline.num_loops}, "
-                  f"RSS {rss_trace[-1][1]:.0f} MiB", flush=True)
+                  f"RSS {rss_trace[-1][1]:.0f} MiB, model-free median of the last 10 "
+                  f"{np.median(recent) * 1000:.0f} ms", flush=True)
         if done >= args.submaps:
             break
     pipeline.stop_requested = True  # the keyframes still waiting make no last submap

@@ -83,12 +83,13 @@ def test_random_weights_give_finite_cameras_and_a_whole_run_reports(bench, tiny_
     assert row["fps"] > 0 and row["host_peak_gib"] > 0
     assert row["gpu_peak_gib"] is None and row["gpu_cap_gib"] is None  # no GPU: nothing measured, no cap
     assert row["per_submap_median_s"]["frontend"] > 0
+    assert 0 < row["outside_loop_s"] < row["seconds"]  # loading the model, writing the outputs
     failed = {"name": "TUM fr1/desk, sequential", "error": "UserError: a | in the message"}
     lines = bench.report([row, failed], "CPU", "a tiny VGGT", "python benchmarks/bench_gpu_run.py run --dry-run",
                          dry_run=True)
     assert lines[0].startswith("## Whole runs on a GPU: the dry run on the CPU")
     table = [line for line in lines if line.startswith(f"| {row['name']} |")]
-    assert len(table) == 1 and table[0].count("|") == 15
+    assert len(table) == 1 and table[0].count("|") == 16
     assert f"| {row['frames']} | {row['keyframes']} | {row['submaps']} |" in table[0]
     assert "| TUM fr1/desk, sequential | failed: UserError: a | in the message |" in lines
     assert lines[-1] == "1 of 2 runs finished; failed: TUM fr1/desk, sequential."

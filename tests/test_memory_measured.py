@@ -63,3 +63,36 @@ def test_the_vggt_estimate_bounds_the_measured_peak_of_a_forward():
     measured_growth = all_frames["measured"] - one["measured"]
     estimated_growth = all_frames["estimate"] - one["estimate"]
     assert measured_growth > 0 and estimated_growth >= GROWTH * measured_growth, (one, all_frames)
+
+
+#: GPU peaks (``torch.cuda.max_memory_allocated``, GiB) of whole runs of TUM fr1/desk on an NVIDIA
+#: H200 in bf16 (2026-11-28, ``benchmarks/results/gpu_run.md``), the dense heads 8 frames at a time,
+#: and each model's grid for 640x480 frames (height, width); the largest window had 18 frames.
+H200_PEAKS = {"vggt": (5.42, 392, 518), "da3-small": (0.95, 378, 504), "da3-large": (4.17, 378, 504)}
+H200_WINDOW = 18
+
+
+@pytest.mark.parametrize("model", sorted(H200_PEAKS))
+def test_the_planner_bounds_the_peaks_of_whole_runs_on_a_gpu(model):
+    """What ``--max-memory`` plans with is above each measured whole-run peak, by at most 30 %
+    (measured 1.27x VGGT-1B, 1.13x DA3-Small, 1.17x DA3-Large), and an 8 GB budget keeps the
+    default head chunk for VGGT-1B (the run within an 8 GiB cap kept it and finished)."""
+    measured, height, width = H200_PEAKS[model]
+    if model == "vggt":
+        import torch
+
+        from sl4slam.models.vggt.memory import estimate_peak_bytes, plan_memory
+        from sl4slam.models.vggt.model import VGGTModelConfig
+        from sl4slam.models.vggt.precision import resolve_precision
+
+        precision = resolve_precision("bf16", torch.device("cuda"))
+        estimate = estimate_peak_bytes(VGGTModelConfig(), precision, H200_WINDOW, height, width, 8, "cuda")
+        plan = plan_memory(VGGTModelConfig(), precision, 8.0, H200_WINDOW, height, width, 8, "cuda")
+        assert plan.head_chunk_frames == 8
+    else:
+        from sl4slam.models.da3.config import ARCHITECTURES
+        from sl4slam.models.da3.memory import estimate_peak_bytes
+
+        estimate = estimate_peak_bytes(ARCHITECTURES[model.split("-")[1]], H200_WINDOW, height, width, 8,
+                                       half_precision=True, device_type="cuda")
+    assert measured * 2**30 <= estimate <= 1.3 * measured * 2**30, estimate / 2**30

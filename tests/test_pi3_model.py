@@ -42,6 +42,7 @@ from sl4slam.models.pi3 import (
     load_pi3,
     parameter_count,
     preprocess_images,
+    resize_lanczos,
     save_checkpoint,
     target_size,
 )
@@ -237,6 +238,23 @@ def test_preprocessing_equals_the_authors_loader(fixtures_dir):
     for entry in meta["default_budget_sizes"]:
         height, width = entry["input_hw"]
         assert target_size(width, height)[::-1] == tuple(entry["output_hw"]), entry
+
+
+@pytest.mark.parametrize("size, new_size", [((480, 640), (434, 588)), ((480, 640), (700, 900)), ((100, 37), (30, 200)),
+                                            ((1000, 300), (200, 280)), ((64, 2000), (64, 90))])
+def test_lanczos_resize_equals_pillow_13(size, new_size):
+    """Our fixed-point Lanczos against the installed Pillow, bit for bit, where its pass order is
+    Pillow 13's (shrinks and enlargements, tall and wide, a 22x shrink)."""
+    import PIL
+    from PIL import Image
+
+    if int(PIL.__version__.split(".")[0]) < 13:
+        pytest.skip(f"Pillow {PIL.__version__} runs the legacy pass order")
+    image = np.random.default_rng(sum(size)).integers(0, 256, (*size, 3), dtype=np.uint8)
+    (height, width) = new_size
+    expected = np.asarray(Image.fromarray(image).resize((width, height), Image.LANCZOS))
+    assert np.array_equal(resize_lanczos(image, width, height), expected)
+    assert np.array_equal(resize_lanczos(image, width, height), expected)  # again, from the cached weights
 
 
 def test_preprocessing_grid_mapping():

@@ -20,6 +20,7 @@ lands at ``(x + 0.5) * scale - 0.5`` on the grid, ``scale = out / in`` (:class:`
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -129,18 +130,33 @@ def lanczos_weights(in_size: int, out_size: int) -> tuple[np.ndarray, np.ndarray
     return first, weights
 
 
+@functools.lru_cache(maxsize=16)
+def _taps(in_size: int, out_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(out, taps)`` input index of each tap (clamped: beyond the support the weight is 0) and its
+    fixed-point weight, as int32 where no sum can overflow it (else int64); read-only, cached."""
+    first, weights = lanczos_weights(in_size, out_size)
+    index = np.minimum(first[:, None] + np.arange(weights.shape[1]), in_size - 1)
+    bound = int(np.abs(weights).sum(axis=1).max()) * 255 + (1 << (_PRECISION_BITS - 1))
+    weights = weights.astype(np.int32 if bound < 2**31 else np.int64)
+    index.setflags(write=False)
+    weights.setflags(write=False)
+    return index, weights
+
+
 def _resample_axis(image: np.ndarray, out_size: int, axis: int) -> np.ndarray:
-    """One pass of PIL's 8-bit resampler along ``axis`` (0: rows, 1: columns) of ``(H, W, C)`` uint8."""
-    first, weights = lanczos_weights(image.shape[axis], out_size)
-    source = np.moveaxis(image, axis, 0).astype(np.int64)
-    last = source.shape[0] - 1
-    total = np.full((out_size,) + source.shape[1:], 1 << (_PRECISION_BITS - 1), dtype=np.int64)
+    """One pass of PIL's 8-bit resampler along ``axis`` (0: rows, 1: columns) of ``(H, W, C)`` uint8
+    (integer sums: exact in any order)."""
+    index, weights = _taps(image.shape[axis], out_size)
+    source = image.astype(weights.dtype)
+    shape = image.shape[:axis] + (out_size,) + image.shape[axis + 1:]
+    total = np.full(shape, 1 << (_PRECISION_BITS - 1), dtype=weights.dtype)
+    term = np.empty(shape, dtype=weights.dtype)
     for tap in range(weights.shape[1]):
-        index = np.minimum(first + tap, last)  # beyond the support the weight is 0
-        weight = weights[:, tap].reshape((-1,) + (1,) * (source.ndim - 1))
-        total += source[index] * weight
-    out = np.clip(total >> _PRECISION_BITS, 0, 255).astype(np.uint8)
-    return np.moveaxis(out, 0, axis)
+        np.take(source, index[:, tap], axis=axis, out=term)
+        term *= weights[:, tap].reshape((-1,) + (1,) * (image.ndim - 1 - axis))
+        total += term
+    total >>= _PRECISION_BITS
+    return np.clip(total, 0, 255).astype(np.uint8)
 
 
 def horizontal_pass_first(in_w: int, in_h: int, out_w: int, out_h: int, pillow_order: str = "13") -> bool:
