@@ -184,6 +184,9 @@ def run_grid(worlds: list[str], profiles: list[str], variants: list[str], seeds:
 
 def report(out: Path) -> None:
     runs = load_runs()
+    if not runs:
+        raise SystemExit(f"bench_levers: no runs to report in {WORK / 'runs.jsonl'}; "
+                         "--seeds is a count (3: seeds 0-2) or a list (0,3,4)")
     lines = ["## Accuracy levers on the same frames (simulated frontend, loops on)", "",
              f"Machine: {platform.machine()}, {os.cpu_count()} cores; runs dated {min(r['date'] for r in runs)} to "
              f"{max(r['date'] for r in runs)}. Command: `python benchmarks/bench_levers.py ...` (grid in the tables). "

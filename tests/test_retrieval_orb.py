@@ -240,7 +240,7 @@ def test_bad_input_is_a_user_error(tum):
 def test_similarity_matches_dense_tf_idf():
     """The inverted-file scoring (and its row-wise tail) equals a dense tf-idf cosine computed directly."""
     retrieval = OrbRetrieval(RetrievalConfig(orb_features=300))
-    images = [random_texture(seed, (160, 200, 3)) for seed in range(200, 275)]
+    images = [random_texture(seed, (160, 200, 3)) for seed in range(200, 345)]
     stored = [retrieval.extract(image) for image in images]
     queries = [stored[3], retrieval.extract(random_texture(999, (160, 200, 3)))]
 
@@ -261,10 +261,17 @@ def test_similarity_matches_dense_tf_idf():
 
     retrieval.add(as_frames(list(range(70)), images[:70]), submap_id=0)
     np.testing.assert_allclose(retrieval.similarity(queries), dense_reference(70), rtol=1e-4, atol=1e-6)
-    retrieval.add(as_frames(list(range(70, 75)), images[70:]), submap_id=1)  # scored row-wise, after the inverted file
+    retrieval.add(as_frames(list(range(70, 75)), images[70:75]), submap_id=1)  # scored row-wise, after the inverted file
     similarity = retrieval.similarity(queries)
     np.testing.assert_allclose(similarity, dense_reference(75, idf_count=70), rtol=1e-4, atol=1e-6)
     assert int(np.argmax(similarity[:, 0])) == 3 and similarity[3, 0] == pytest.approx(1.0, abs=1e-5)
+    # a query after every few keyframes: the idf is rebuilt once the database has grown by more than
+    # max(64, a quarter) keyframes since it was computed (at 135 here), not from the first ones forever
+    for start in range(75, 145, 10):
+        retrieval.add(as_frames(list(range(start, start + 10)), images[start:start + 10]), submap_id=start)
+        similarity = retrieval.similarity(queries)
+        np.testing.assert_allclose(similarity, dense_reference(start + 10, idf_count=70 if start + 10 < 135 else 135),
+                                   rtol=1e-4, atol=1e-6)
 
 
 def test_coarse_ranking_keeps_the_revisit_in_a_large_database():

@@ -182,6 +182,7 @@ class OrbRetrieval:
         # Inverted file (words x keyframes) over the first keyframes; see _inverted_file().
         self._inverted: scipy.sparse.csr_matrix | None = None
         self._idf: np.ndarray | None = None  # cached, see _idf_and_norms
+        self._idf_count = 0  # keyframes stored when the cached idf was computed
         self._global = np.zeros((0, GLOBAL_DIM), np.float32)  # hashed tf rows, grown geometrically
         self.describe_seconds = 0.0  # time spent extracting features (the "descriptor model")
         self._stored_norm = np.zeros(0, np.float32)
@@ -303,8 +304,8 @@ class OrbRetrieval:
         buffers' fill and the cached idf, norms and inverted file (replaced, never changed in place,
         so references are enough). Cost independent of the database's size."""
         return {"count": len(self), "nnz": self._tf_nnz, "indptr": self._tf_indptr, "submap_ids": self._submap_ids,
-                "idf": self._idf, "stored_norm": self._stored_norm, "inverted": self._inverted,
-                "pending": dict(self._pending)}
+                "idf": self._idf, "idf_count": self._idf_count, "stored_norm": self._stored_norm,
+                "inverted": self._inverted, "pending": dict(self._pending)}
 
     def rewind(self, mark: dict) -> None:
         """Forget every keyframe added since :meth:`mark` returned ``mark``: the database, its caches
@@ -320,6 +321,7 @@ class OrbRetrieval:
         self._tf_nnz = int(mark["nnz"])
         self._tf_indptr, self._submap_ids = mark["indptr"], mark["submap_ids"]
         self._idf, self._stored_norm, self._inverted = mark["idf"], mark["stored_norm"], mark["inverted"]
+        self._idf_count = int(mark["idf_count"])
         self._pending = dict(mark["pending"])
 
     def _append_global_row(self, position: int, row: np.ndarray) -> None:
@@ -456,9 +458,10 @@ class OrbRetrieval:
         """
         num_stored = len(self)
         cached = 0 if self._idf is None else len(self._stored_norm)
-        if self._idf is None or num_stored - cached > max(64, cached // 4):
+        if self._idf is None or num_stored - self._idf_count > max(64, self._idf_count // 4):
             self._idf = np.log1p(num_stored / np.maximum(self._document_frequency, 1)).astype(np.float32)
             self._stored_norm = self._norms(0, self._idf)
+            self._idf_count = num_stored
         elif cached < num_stored:
             self._stored_norm = np.concatenate([self._stored_norm, self._norms(cached, self._idf)])
         return self._idf, self._stored_norm
