@@ -97,6 +97,9 @@ VARIANTS = {
                        "submap graph with 2 shared frames (no attention check), every proposal a wrong place"),
     "defaults-corr8000": ({"__defaults__": True, "alignment.max_correspondences": 8000},
                           "the defaults with at most 8000 shared pixels per frame in a link's fits (30000 by default)"),
+    "defaults-refine": ({"__defaults__": True, "submap.refine_cameras": 3},
+                        "the defaults with every frame's pose refined against the other frames' dense points in its "
+                        "submap (3 Gauss-Newton steps; docs/decisions/frame-refinement.md)"),
     "defaults-sensor": ({"__defaults__": True, "source.metric_depth": "sensor"},
                         "the defaults with metric scale from the depth sensor"),
 }

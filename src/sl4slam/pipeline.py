@@ -58,7 +58,8 @@ from .result import SLAMResult, SourceColors, keyframe_cameras
 from .result.assemble import assemble_result, final_estimate
 from .schedule import SequentialScheduler, make_scheduler
 from .source_knowledge import SourceKnowledge, source_problem
-from .submap import StoredKeyframe
+from .refine import refine_prediction
+from .submap import StoredKeyframe, confidence_mask
 from .types import Aligner, Alignment, Frame, FrameSource, Frontend, LoopCandidate, Retrieval, SubmapPrediction
 from .window import (Anticipation, DenseSubmap, FrontendOutcome, SharedFrames, SubmapInput, prediction_problem,
                      recorded_match_ratio)
@@ -358,7 +359,12 @@ class SLAMPipeline:
         start = time.perf_counter()
         try:
             prediction = self.frontend.reconstruct(work.frames, work.submap_id, **keywords)
-            outcome = FrontendOutcome(prediction, prediction_problem(prediction, len(work.frames)))
+            problem = prediction_problem(prediction, len(work.frames))
+            steps = self.config.submap.refine_cameras
+            if steps and problem is None:  # a lever, off by default: each frame's pose against the others' points
+                mask = confidence_mask(prediction.confidence, prediction.depth, self.config.submap.tau_conf)
+                prediction = refine_prediction(prediction, mask, steps)
+            outcome = FrontendOutcome(prediction, problem)
         except UserError as exc:  # a problem of the settings (a cache that does not match, a memory budget)
             outcome = FrontendOutcome(None, str(exc), error=exc)
         except Exception as exc:  # a failing model must not end the run: the submap is skipped

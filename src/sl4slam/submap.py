@@ -50,6 +50,10 @@ class SubmapConfig(Section):
     """Percentile of the submap's confidence below which pixels are dropped (reference code: 25)."""
     use_point_head: bool = False
     """Use the frontend's point map instead of unprojecting depth (VGGT offers both)."""
+    refine_cameras: int = setting(0, advanced=True, check=lambda v: v >= 0, allowed=">= 0 (0: off)")
+    """Refine every frame's pose but the first against the other frames' dense points in the
+    submap, by this many Gauss-Newton steps (``sl4slam.refine``); 0: the frontend's poses as they
+    are (decision: docs/decisions/frame-refinement.md)."""
     keyframes_in_ram: int = setting(1024, advanced=True, check=lambda v: v >= 0, allowed=">= 0 (0: every keyframe)")
     """Newest keyframes whose depth, mask and confidence stay in RAM (about 0.36 MB each at
     518x294); older ones are kept in files of the run's folder (``.keyframe_store``, removed when
