@@ -6,7 +6,7 @@
 from __future__ import annotations
 
 from harness import REPO, RESULTS
-ORDER = ["robustness", "robustness_defaults", "submap_size", "submap_size_submap", "accuracy", "upgrade_pipeline", "upgrade", "failfast", "pipeline", "pipeline_shortcuts", "ransac", "backend", "evaluation",
+ORDER = ["robustness", "robustness_defaults", "submap_size", "submap_size_submap", "accuracy", "upgrade_pipeline", "upgrade", "failfast", "pipeline", "pipeline_3000_progress", "pipeline_shortcuts", "ransac", "backend", "evaluation",
          "keyframe_graph", "levers", "refine", "suite", "authors_v1", "render", "retrieval_orb", "salad", "vggt", "pi3", "da3", "models", "cpu_estimate", "overlap", "workers", "resume", "gpu_run", "localize", "export",
          "keyframe_format", "viewer", "viewer_open", "objects", "objects_models", "test_suite"]
 HEADER = """# Benchmarks
