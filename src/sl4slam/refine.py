@@ -44,21 +44,20 @@ def camera_points_and_normals(depth: np.ndarray, K: np.ndarray) -> tuple[np.ndar
     return points, normals
 
 
-def _bilinear_depth(depth: np.ndarray, valid: np.ndarray, row: np.ndarray, col: np.ndarray, fx: np.ndarray,
+def _bilinear_depth(inverse: np.ndarray, valid: np.ndarray, row: np.ndarray, col: np.ndarray, fx: np.ndarray,
                     fy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Depth at ``(col + fx, row + fy)`` from the four pixels around it, interpolated in inverse depth
-    (exact on a plane), and whether all four are valid."""
+    """Depth at ``(col + fx, row + fy)`` from the four pixels around it, interpolated in the inverse
+    depth ``inverse`` ``(H, W)`` (exact on a plane), and whether all four are valid."""
     known = valid[row, col] & valid[row, col + 1] & valid[row + 1, col] & valid[row + 1, col + 1]
-    inverse = 1.0 / np.where(valid, depth, 1.0).astype(np.float64)
     top = inverse[row, col] * (1 - fx) + inverse[row, col + 1] * fx
     bottom = inverse[row + 1, col] * (1 - fx) + inverse[row + 1, col + 1] * fx
     return 1.0 / (top * (1 - fy) + bottom * fy), known
 
 
-def _pairs(depth, K, T, valid, grids, normals, frame, other, tol):
+def _pairs(inverses, K, T, valid, grids, normals, frame, other, tol):
     """Point-to-plane pairs of ``frame``'s grid points on ``other``'s surface: ``(p, q, n)`` in the
     submap frame, ``(m, 3)`` each (``q`` on ``other``'s ray at its measured depth, ``n`` its normal)."""
-    H, W = depth.shape[1:]
+    H, W = inverses.shape[1:]
     R, t = T[frame, :, :3], T[frame, :, 3]
     Ro, to = T[other, :, :3], T[other, :, 3]
     p = (grids[frame] - t) @ R
@@ -70,7 +69,7 @@ def _pairs(depth, K, T, valid, grids, normals, frame, other, tol):
     col, row = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
     inside = (col >= 0) & (col < W - 1) & (row >= 0) & (row < H - 1)
     front, col, row, u, v = front[inside], col[inside], row[inside], u[inside], v[inside]
-    measured, known = _bilinear_depth(depth[other], valid[other], row, col, u - col, v - row)
+    measured, known = _bilinear_depth(inverses[other], valid[other], row, col, u - col, v - row)
     n_cam = normals[other][np.rint(v).astype(np.int64), np.rint(u).astype(np.int64)]
     keep = known & (np.abs(z[front] - measured) <= tol * measured) & (np.abs(n_cam).sum(axis=1) > 0)
     ray = np.stack([u[keep], v[keep], np.ones(int(keep.sum()))], axis=-1) @ np.linalg.inv(K[other]).T
@@ -106,12 +105,13 @@ def refine_frame_poses(depth: np.ndarray, K: np.ndarray, T_cam_submap: np.ndarra
         points, n = camera_points_and_normals(depth[s], K[s])
         grids.append(points[np.ix_(rows, cols)][valid[s][np.ix_(rows, cols)]])
         normals.append(n)
+    inverses = 1.0 / np.where(valid, depth, 1.0).astype(np.float64)  # (S, H, W), read by every pair
     for _ in range(iterations):
         blocks = []
         for f in range(S):
             for o in range(S):
                 if o != f:
-                    p, q, n = _pairs(depth, K, T, valid, grids, normals, f, o, tol)
+                    p, q, n = _pairs(inverses, K, T, valid, grids, normals, f, o, tol)
                     if len(p):
                         blocks.append((f, o, p, q, n))
         if not blocks:
