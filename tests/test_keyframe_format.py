@@ -33,7 +33,7 @@ from sl4slam.localize import localize_frames, views_from_pipeline, views_from_re
 from sl4slam.pipeline import SLAMPipeline
 from sl4slam.resolve import resolve
 from sl4slam.result import SLAMResult, keyframe_cameras
-from sl4slam.result.outputs import keyframe_world_points, read_ply, write_outputs
+from sl4slam.result.outputs import keyframe_world_points, ordered_map, read_ply, write_map_and_keyframes, write_outputs
 from sl4slam.result.reading import COMPACT_POINT_TOLERANCE, decode_depth, encode_depth, load_result
 from sl4slam.runner import run_slam
 from sl4slam.submap import StoredKeyframe
@@ -128,6 +128,50 @@ def test_compact_reads_back_the_full_points_mask_colours_and_confidence(run) -> 
     assert errors.mean() < COLOUR_MEAN and np.percentile(errors, 99) < COLOUR_P99, (errors.mean(), np.percentile(errors, 99))
     if run.graph == "submap":  # the world map really is projective: w varies over every keyframe
         assert perspective > 0.05, perspective
+
+
+@pytest.mark.parametrize("layout", ["compact", "full"])
+def test_the_map_and_keyframe_files_do_not_depend_on_the_worker_count(run, layout, tmp_path) -> None:
+    """Keyframes are processed in threads; the random subsample is drawn in keyframe order, so one
+    thread and three write the same bytes (the map subsampled: the draws are exercised)."""
+    written = {}
+    for workers in (1, 3):
+        folder = tmp_path / str(workers)
+        folder.mkdir()
+        count = write_map_and_keyframes(run.result, folder, max_points=5000, seed=4, keyframe_dir=folder / "keyframes",
+                                        layout=layout, workers=workers)
+        assert 0 < count <= 5000
+        written[workers] = {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+    assert len(written[1]) == len(run.result.keyframes) + 1
+    assert written[1] == written[3]
+
+
+def test_ordered_map_keeps_order_bounds_what_is_in_flight_and_raises_in_turn() -> None:
+    import threading
+
+    lock, state = threading.Lock(), {"running": 0, "most": 0, "started": 0}
+
+    def slow_first(i: int) -> int:
+        with lock:
+            state["running"] += 1
+            state["started"] += 1
+            state["most"] = max(state["most"], state["running"])
+        if i == 0:
+            threading.Event().wait(0.05)  # the first item finishes last: order must still hold
+        with lock:
+            state["running"] -= 1
+        if i == 7:
+            raise ValueError("item 7")
+        return i * i
+
+    got = []
+    with pytest.raises(ValueError, match="item 7"):
+        for value in ordered_map(slow_first, range(40), workers=2):
+            got.append(value)
+    assert got == [i * i for i in range(7)]
+    assert state["most"] <= 2
+    assert state["started"] <= 7 + 1 + 2 * 2  # nothing runs far ahead of what is consumed
+    assert list(ordered_map(lambda i: -i, range(5), workers=1)) == [0, -1, -2, -3, -4]
 
 
 def test_compact_is_at_least_ten_times_smaller(run) -> None:

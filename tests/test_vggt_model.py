@@ -306,3 +306,32 @@ def test_rope_reads_each_positions_tensor_once_and_never_a_stale_length(monkeypa
         assert torch.equal(rope(tokens, bigger), fresh()(tokens, bigger))
         del bigger
     assert len(reads) == 2 + 3 * 2  # each tensor once by ``rope``, once by its fresh module
+
+
+def test_building_on_meta_to_load_weights_leaves_torch_compiler_stack_unimported() -> None:
+    """Loading weights builds the model on the meta device first; drawing its tokens' random
+    initial values there would import torch._dynamo (seconds on a cold start). Checked in a fresh
+    process, since other tests may have imported it in this one."""
+    import subprocess
+    import sys
+
+    code = ("import sys, torch\n"
+            "from sl4slam.models.vggt.model import VGGT, VGGTModelConfig\n"
+            "with torch.device('meta'):\n"
+            "    model = VGGT(VGGTModelConfig(embed_dim=64, depth=2, num_heads=2, patch_embed_depth=2, patch_embed_num_heads=2))\n"
+            "assert all(p.is_meta for p in model.parameters())\n"
+            "print('torch._dynamo' in sys.modules)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "False"
+
+
+def test_learned_tokens_are_drawn_as_before_off_meta() -> None:
+    """Off the meta device the tokens are ``randn * 1e-6`` from the global generator, bit for bit."""
+    from sl4slam.models.vggt.aggregator import _tiny_normal
+
+    torch.manual_seed(11)
+    drawn = [_tiny_normal(1, 2, 1, 64), _tiny_normal(1, 2, 4, 64)]
+    torch.manual_seed(11)
+    expected = [torch.randn(1, 2, 1, 64) * 1e-6, torch.randn(1, 2, 4, 64) * 1e-6]
+    assert all(torch.equal(a, b) for a, b in zip(drawn, expected))

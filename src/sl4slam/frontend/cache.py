@@ -253,12 +253,13 @@ class ReplayFrontend:
 
     def grid_colors(self, frame: Frame) -> np.ndarray:
         """The recorded colours of ``frame`` (from the first submap that holds it)."""
-        if self._color_slots is None:
-            self._color_slots = {}
+        if self._color_slots is None:  # built whole before it is shared (the map is written in threads)
+            slots: dict[int, tuple[Path, int]] = {}
             for path in sorted(self.directory.glob("submap_*.npz")):
                 with np.load(path) as data:
                     for slot, index in enumerate(data["frame_indices"].tolist()):
-                        self._color_slots.setdefault(int(index), (path, slot))
+                        slots.setdefault(int(index), (path, slot))
+            self._color_slots = slots
         if frame.index not in self._color_slots:
             raise UserError(f"frame {frame.index} is not in the frontend cache {self.directory}")
         path, slot = self._color_slots[frame.index]

@@ -110,6 +110,8 @@ class DinoVisionTransformer(nn.Module):
 
     def _init_tokens(self) -> None:
         # DINOv2's initialisation of the learned tokens (global torch RNG: seed it for reproducibility).
+        if self.cls_token.is_meta:  # built to be assigned loaded weights: nothing to fill (and normal_ on
+            return  # meta would import torch's compiler stack, seconds on a cold start)
         nn.init.trunc_normal_(self.pos_embed, std=0.02)
         nn.init.normal_(self.cls_token, std=1e-6)
         if self.register_tokens is not None:

@@ -21,10 +21,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import resource
 import sys
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Iterable, Iterator, Sequence, TypeVar
 
 import numpy as np
 
@@ -36,6 +39,32 @@ from . import SLAMResult
 from .reading import KEYFRAME_LAYOUTS, encode_colors, encode_depth, to_world
 
 RESULT_FORMAT = {"name": "sl4slam-result", "version": 3}
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def output_workers() -> int:
+    """Threads for the per-keyframe output work: the CPUs this process may use, at most 8."""
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(8, usable))
+
+
+def ordered_map(fn: Callable[[T], R], items: Iterable[T], workers: int | None = None) -> Iterator[R]:
+    """``fn`` of each of ``items`` in ``workers`` threads (default :func:`output_workers`), yielded in
+    the items' order, with at most ``2 * workers`` results in flight (memory stays bounded however
+    many items there are). An exception from ``fn`` is raised when its item's turn comes."""
+    workers = output_workers() if workers is None else max(1, int(workers))
+    if workers == 1:
+        yield from map(fn, items)
+        return
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        pending: deque[Future] = deque()
+        for item in items:
+            if len(pending) >= 2 * workers:
+                yield pending.popleft().result()
+            pending.append(pool.submit(fn, item))
+        while pending:
+            yield pending.popleft().result()
 
 
 def keyframe_world_points(keyframe: StoredKeyframe, H_world_submap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -48,13 +77,16 @@ def keyframe_world_points(keyframe: StoredKeyframe, H_world_submap: np.ndarray) 
 
 
 def write_map_and_keyframes(result: SLAMResult, out_dir: Path, max_points: int, voxel_size: float = 0.0, seed: int = 0,
-                            keyframe_dir: Path | None = None, layout: str = "compact") -> int:
+                            keyframe_dir: Path | None = None, layout: str = "compact",
+                            workers: int | None = None) -> int:
     """``map.ply`` (and, with ``keyframe_dir``, one ``.npz`` per keyframe in ``layout``, "compact"
     or "full") from one pass over the keyframes: each keyframe's world points are computed once.
     Returns the map's point count.
 
     The map is confidence-filtered, subsampled (seeded) to at most ``max_points`` and optionally
-    reduced to one point (centroid, mean colour) per voxel of size ``voxel_size``.
+    reduced to one point (centroid, mean colour) per voxel of size ``voxel_size``. The keyframes
+    are processed in ``workers`` threads (default :func:`output_workers`); the outputs do not depend
+    on it.
     """
     counts = [int(np.unpackbits(k.mask_bits).sum()) for k in result.keyframes]
     keep_fraction = min(1.0, max_points / max(1, sum(counts)))
@@ -64,13 +96,20 @@ def write_map_and_keyframes(result: SLAMResult, out_dir: Path, max_points: int, 
     chunks_xyz, chunks_rgb = [], []
     if keyframe_dir is not None and layout not in KEYFRAME_LAYOUTS:
         raise ValueError(f"keyframe layout must be 'compact' or 'full', got {layout!r}")
-    for index, keyframe in enumerate(result.keyframes):
+
+    def one(item: tuple[int, StoredKeyframe]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        index, keyframe = item
         H = result.H_world(keyframe)
         X, valid = keyframe_world_points(keyframe, H)
         colors = result.keyframe_colors(keyframe)
         if keyframe_dir is not None:
             write = _write_compact_keyframe if layout == "compact" else _write_keyframe
             write(keyframe_dir, keyframe, X, valid, colors, result, index, H)
+        return X, valid, colors
+
+    # each keyframe's points, colours and file are independent (numpy, OpenCV and torch release the
+    # GIL); the random draws below stay in keyframe order, so the map is the same for any worker count
+    for X, valid, colors in ordered_map(one, enumerate(result.keyframes), workers):
         pick = valid if keep_fraction >= 1.0 else valid & (rng.random(valid.shape) < keep_fraction)
         chunks_xyz.append(X[pick])
         chunks_rgb.append(colors[pick])

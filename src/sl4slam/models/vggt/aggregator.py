@@ -22,6 +22,14 @@ IMAGE_MEAN = (0.485, 0.456, 0.406)
 IMAGE_STD = (0.229, 0.224, 0.225)
 
 
+
+def _tiny_normal(*shape: int) -> Tensor:
+    """A learned token's initial value, ``N(0, 1e-12)`` from torch's global generator (``randn * 1e-6``,
+    bit for bit); left empty under a ``torch.device("meta")`` context, where the weights are assigned
+    later (drawing there would import torch's compiler stack: seconds on a cold start)."""
+    token = torch.empty(*shape)
+    return token if token.is_meta else token.normal_() * 1e-6
+
 class Aggregator(nn.Module):
     """Alternating-attention transformer over S frames.
 
@@ -86,8 +94,8 @@ class Aggregator(nn.Module):
 
         self.frame_blocks = nn.ModuleList(make_block() for _ in range(depth))
         self.global_blocks = nn.ModuleList(make_block() for _ in range(depth))
-        self.camera_token = nn.Parameter(torch.randn(1, 2, 1, embed_dim) * 1e-6)
-        self.register_token = nn.Parameter(torch.randn(1, 2, num_register_tokens, embed_dim) * 1e-6)
+        self.camera_token = nn.Parameter(_tiny_normal(1, 2, 1, embed_dim))
+        self.register_token = nn.Parameter(_tiny_normal(1, 2, num_register_tokens, embed_dim))
         self.patch_start_idx = 1 + num_register_tokens
 
     @staticmethod
