@@ -49,6 +49,9 @@ WORK = OUT / "levers"
 WORLDS = {"synthetic": "synthetic world (600 frames, 320x240, one lap)", "desk": "TUM fr1/desk (613 frames)"}
 WINDOW_OFF = "its distortion common to a window (perspective, shear 0)"
 POSES_OFF = "its per-frame pose errors (camera rotation, translation 0)"
+FOCAL_OFF = "its per-frame focal errors (focal_error 0)"
+WARP_OFF = "its smooth depth warps (depth_warp 0)"
+PIXELS_OFF = "its per-pixel depth errors (depth noise, flying pixels, outlier blobs 0)"
 PROFILES = {
     # name: (sim profile, explicit magnitudes, what it is)
     "vggt": ("vggt", {}, "VGGT-like errors (per-frame cameras, focal, smooth depth warps, flying pixels)"),
@@ -64,8 +67,14 @@ PROFILES = {
                    f"diagnostic: the hard profile without {WINDOW_OFF}"),
     "vggt-nocam": ("vggt", {"camera_rotation_deg": 0.0, "camera_translation": 0.0},
                    f"diagnostic: the vggt profile without {POSES_OFF}"),
+    "vggt-nofocal": ("vggt", {"focal_error": 0.0}, f"diagnostic: the vggt profile without {FOCAL_OFF}"),
+    "vggt-nowarp": ("vggt", {"depth_warp": 0.0}, f"diagnostic: the vggt profile without {WARP_OFF}"),
+    "vggt-nopixel": ("vggt", {"depth_noise": 0.0, "flying_px": 0.0, "outlier_fraction": 0.0},
+                     f"diagnostic: the vggt profile without {PIXELS_OFF}"),
 }
-DIAGNOSTIC = {"vggt-nowin": ("vggt", WINDOW_OFF), "hard-nowin": ("hard", WINDOW_OFF), "vggt-nocam": ("vggt", POSES_OFF)}
+DIAGNOSTIC = {"vggt-nowin": ("vggt", WINDOW_OFF), "hard-nowin": ("hard", WINDOW_OFF), "vggt-nocam": ("vggt", POSES_OFF),
+              "vggt-nofocal": ("vggt", FOCAL_OFF), "vggt-nowarp": ("vggt", WARP_OFF),
+              "vggt-nopixel": ("vggt", PIXELS_OFF)}
 """Each diagnostic profile: the full profile it is compared with, and the term it switches off."""
 VARIANTS = {
     # name: (settings, what it is)
