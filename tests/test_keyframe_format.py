@@ -33,7 +33,8 @@ from sl4slam.localize import localize_frames, views_from_pipeline, views_from_re
 from sl4slam.pipeline import SLAMPipeline
 from sl4slam.resolve import resolve
 from sl4slam.result import SLAMResult, keyframe_cameras
-from sl4slam.result.outputs import keyframe_world_points, ordered_map, read_ply, write_map_and_keyframes, write_outputs
+from sl4slam.parallel import ordered_map
+from sl4slam.result.outputs import keyframe_world_points, read_ply, write_map_and_keyframes, write_outputs
 from sl4slam.result.reading import COMPACT_POINT_TOLERANCE, decode_depth, encode_depth, load_result
 from sl4slam.runner import run_slam
 from sl4slam.submap import StoredKeyframe

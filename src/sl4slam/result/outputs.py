@@ -21,50 +21,27 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import resource
 import sys
-from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Sequence, TypeVar
+from typing import Any, Sequence
 
 import numpy as np
 
 from ..errors import UserError
 from ..metrics import ATEResult, ate
 from ..atomic import atomic_path, atomic_write_bytes, atomic_write_npz
+from ..parallel import cpu_count, ordered_map
 from ..submap import StoredKeyframe
 from . import SLAMResult
 from .reading import KEYFRAME_LAYOUTS, encode_colors, encode_depth, to_world
 
 RESULT_FORMAT = {"name": "sl4slam-result", "version": 3}
-T = TypeVar("T")
-R = TypeVar("R")
 
 
 def output_workers() -> int:
     """Threads for the per-keyframe output work: the CPUs this process may use, at most 8."""
-    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(8, usable))
-
-
-def ordered_map(fn: Callable[[T], R], items: Iterable[T], workers: int | None = None) -> Iterator[R]:
-    """``fn`` of each of ``items`` in ``workers`` threads (default :func:`output_workers`), yielded in
-    the items' order, with at most ``2 * workers`` results in flight (memory stays bounded however
-    many items there are). An exception from ``fn`` is raised when its item's turn comes."""
-    workers = output_workers() if workers is None else max(1, int(workers))
-    if workers == 1:
-        yield from map(fn, items)
-        return
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        pending: deque[Future] = deque()
-        for item in items:
-            if len(pending) >= 2 * workers:
-                yield pending.popleft().result()
-            pending.append(pool.submit(fn, item))
-        while pending:
-            yield pending.popleft().result()
+    return min(8, cpu_count())
 
 
 def keyframe_world_points(keyframe: StoredKeyframe, H_world_submap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -109,7 +86,7 @@ def write_map_and_keyframes(result: SLAMResult, out_dir: Path, max_points: int, 
 
     # each keyframe's points, colours and file are independent (numpy, OpenCV and torch release the
     # GIL); the random draws below stay in keyframe order, so the map is the same for any worker count
-    for X, valid, colors in ordered_map(one, enumerate(result.keyframes), workers):
+    for X, valid, colors in ordered_map(one, enumerate(result.keyframes), output_workers() if workers is None else workers):
         pick = valid if keep_fraction >= 1.0 else valid & (rng.random(valid.shape) < keep_fraction)
         chunks_xyz.append(X[pick])
         chunks_rgb.append(colors[pick])
