@@ -53,6 +53,18 @@ def test_the_store_keeps_only_the_newest_keyframes_arrays_in_ram(tmp_path: Path)
         spilled.no_such_array
 
 
+def test_a_spilled_keyframe_answers_its_shape_and_size_without_its_file(tmp_path: Path) -> None:
+    # the end of a long run reads every keyframe's shape (the metric upgrade) and size (the summary):
+    # tens of thousands of file reads if a spilled keyframe had to load its arrays for them
+    keyframe = _keyframe(0, np.random.default_rng(2))
+    shape, nbytes = keyframe.shape, keyframe.nbytes
+    keyframe.spill(tmp_path / "k.npz")
+    (tmp_path / "k.npz").unlink()
+    assert keyframe.shape == shape == (12, 16) and keyframe.nbytes == nbytes
+    with pytest.raises(FileNotFoundError):
+        keyframe.depth
+
+
 def test_a_temporary_folder_lives_as_long_as_its_keyframes() -> None:
     rng = np.random.default_rng(1)
     store = KeyframeStore(in_ram=1)

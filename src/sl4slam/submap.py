@@ -335,7 +335,9 @@ class StoredKeyframe:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.depth.shape  # type: ignore[return-value]
+        """``(H, W)`` of the keyframe's depth (a spilled keyframe answers without reading its file)."""
+        spilled = self.__dict__.get("_spill_shape")
+        return spilled if spilled is not None else self.depth.shape  # type: ignore[return-value]
 
     def mask(self) -> np.ndarray:
         """``(H, W)`` bool confidence mask."""
@@ -360,9 +362,12 @@ class StoredKeyframe:
 
     @property
     def nbytes(self) -> int:
-        """Bytes of everything the keyframe stores (in RAM or in its file)."""
-        return int(sum(a.nbytes for a in (self.depth, self.mask_bits, self.confidence_rank, self.K, self.T_cam_submap,
-                                          self.principal_point)))
+        """Bytes of everything the keyframe stores (in RAM or in its file; a spilled keyframe answers
+        without reading its file)."""
+        image_sized = self.__dict__.get("_spill_nbytes")
+        if image_sized is None:
+            image_sized = sum(a.nbytes for a in (self.depth, self.mask_bits, self.confidence_rank))
+        return int(image_sized + sum(a.nbytes for a in (self.K, self.T_cam_submap, self.principal_point)))
 
     @property
     def ram_bytes(self) -> int:
@@ -385,6 +390,8 @@ class StoredKeyframe:
         if self.spilled:
             return
         atomic_write_npz(path, {name: getattr(self, name) for name in _SPILLED}, compressed=False)
+        self.__dict__["_spill_shape"] = tuple(int(n) for n in self.depth.shape)
+        self.__dict__["_spill_nbytes"] = int(sum(self.__dict__[name].nbytes for name in _SPILLED))
         for name in _SPILLED:
             del self.__dict__[name]
         self.__dict__["_spill_path"] = Path(path)
