@@ -545,7 +545,8 @@ def suite_report(out: Path) -> None:
              f"Machine: {cpu_model()}, {os.cpu_count()} cores; runs dated {min(r['date'] for r in runs)} to "
              f"{max(r['date'] for r in runs)}. Commands: {'; '.join(f'`{c}`' for c in commands) or '-'}. "
              "Each cell: the median over seeds of the per-seed ratio variant / baseline ATE RMSE (Sim(3)-aligned, "
-             "keyframes) on the same simulated frames; the baseline column is its median ATE in metres. Per half: the "
+             "keyframes) on the same simulated frames; the baseline column is its median ATE in metres over its seeds (the "
+             "seeds column: how many; a variant's cell uses the seeds it ran). Per half: the "
              "median of the per-sequence ratios, the worst (largest; \"failed\" when a run of the variant raised) and "
              "the wins (ratio < 1) over the sequences. Choose on the tune half only; the validate half is reported.", ""]
     for profile in PROFILES:
@@ -567,7 +568,8 @@ def suite_report(out: Path) -> None:
                     ratios = per_variant[v].get(key, [])
                     numbers = [x for x in ratios if x is not None]
                     cells.append("-" if not ratios else ("failed" if not numbers else f"{np.median(numbers):.2f}"))
-                body.append([key[0], half, key[1] or "all", f"{np.median(base):.4f}" if base else "failed", *cells])
+                body.append([key[0], half, key[1] or "all", len(base), f"{np.median(base):.4f}" if base else "failed",
+                             *cells])
             for label, pick in (("median", 0), ("worst", 1), ("wins", 2)):
                 cells = []
                 for v in variants:
@@ -578,9 +580,10 @@ def suite_report(out: Path) -> None:
                         if ratios:
                             values.append(float(np.median(numbers)) if numbers else None)
                     cells.append(_half_summary(values)[pick])
-                body.append([f"**{half}: {label}**", half, "", "", *cells])
+                body.append([f"**{half}: {label}**", half, "", "", "", *cells])
         lines += [f"**{profile} profile** ({PROFILES[profile][2]}; seeds {', '.join(map(str, seeds))})", "",
-                  *table(["sequence", "half", "frames", "baseline ATE m", *[f"{v} / baseline" for v in variants]], body),
+                  *table(["sequence", "half", "frames", "seeds", "baseline ATE m", *[f"{v} / baseline" for v in variants]],
+                        body),
                   ""]
     failures = [r for r in runs if r.get("error")]
     if failures:
