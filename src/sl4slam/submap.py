@@ -366,7 +366,7 @@ class StoredKeyframe:
         without reading its file)."""
         image_sized = self.__dict__.get("_spill_nbytes")
         if image_sized is None:
-            image_sized = sum(a.nbytes for a in (self.depth, self.mask_bits, self.confidence_rank))
+            image_sized = sum(getattr(self, name).nbytes for name in _SPILLED)
         return int(image_sized + sum(a.nbytes for a in (self.K, self.T_cam_submap, self.principal_point)))
 
     @property
