@@ -161,6 +161,39 @@ def test_a_flat_shared_frame_still_lets_the_other_judge_the_fit(frames: list) ->
     assert link_error(calibration.H, H_true, pairs) > 0.01
 
 
+def test_a_flat_frame_measured_by_the_link_abstains_and_the_other_fold_judges(frames: list) -> None:
+    """The same two shared frames, the flat one measured by its calibration-and-scale link
+    (``planar_model="calibration-scale"``): trained on it, the fold's "fit" is the link itself, a
+    tie that determined nothing, so it does not judge. The other fold (the fit of the frame with
+    relief, judged on the flat one) predicts far better, and the fit is chosen and lands on the true
+    transform. (Counted as a vote against the fit, the tie left the calibration link, 0.05 off.)"""
+    config = AlignmentConfig(planar_model="calibration-scale")
+    pairs, H_true = two_submaps(frames[3:], DISTORTED, 2)
+    alone = [SL4Aligner(config).align(*pair, seed=0) for pair in pairs]
+    assert alone[0].extras.get("degenerate") and is_camera_link(alone[0]) and not alone[1].extras.get("degenerate")
+    link = SelectAligner(config).align_frames(pairs, seed=0)
+    chosen = link.extras["select"]
+    assert chosen["judged"] == [True, False] and chosen["held_out_log_ratios"][1] == 0.0
+    assert chosen["chosen"] == "fit" and chosen["held_out_log_ratios"][0] < -5
+    assert link_error(link.H, H_true, pairs) < 1e-4
+    assert link_error(CalibrationAligner(config).align_frames(pairs, seed=0).H, H_true, pairs) > 0.01
+
+
+def test_two_folds_that_differ_still_choose_the_fit_when_each_predicts_better() -> None:
+    """Two folds are one comparison seen from both sides: a window's distortion seen by two frames
+    that differ (forward motion along a corridor: held-out log ratios -1.89 and -2.75, a 10x better
+    prediction) passes when each fold is better and their geometric mean by the gain; a t-test on the
+    two (one degree of freedom, 6.3 standard errors at 0.95) refused it. A fold that prefers the link,
+    or a gain below 2x, keeps the link; three or more folds also face the t-test."""
+    assert fit_predicts_better(np.array([-1.89, -2.75]), 0.95, 2.0)
+    assert not fit_predicts_better(np.array([-2.5, 0.05]), 0.95, 2.0)
+    assert not fit_predicts_better(np.array([-0.5, -0.6]), 0.95, 2.0)
+    assert not fit_predicts_better(np.array([]), 0.95, 2.0)
+    assert fit_predicts_better(np.array([-2.0]), 0.95, 2.0)  # one judging fold: each, and the gain
+    assert not fit_predicts_better(np.array([-0.2, -4.0, -0.3]), 0.95, 2.0)  # t-test: spread too wide
+    assert fit_predicts_better(np.array([-2.0, -2.2, -1.9]), 0.95, 2.0)
+
+
 def test_keyframe_graph_links_submaps_that_share_two_frames() -> None:
     """Submaps sharing two keyframes: the link measured between the submaps reaches the new chain
     from the previous submap's last node, and the estimate is exact (a tree)."""

@@ -11,14 +11,16 @@ the link, blind to it, does better. A margin on how much better the fit explains
 
 Prediction tells them apart. With two or more shared frames, each model is measured on all of
 them but one and judged on the one left out: a distortion of the window, measured on the other
-frames, predicts it; another frame's warp does not. The fit is chosen only where it predicts the
-left-out frames better than the link at ``AlignmentConfig.select_confidence`` (a one-sided paired
-t-test over the left-out frames, each frame one observation: its pixels err together), and by at
-least ``AlignmentConfig.select_min_gain`` times (geometric mean of the left-out error ratios). The
-t-test counts the folds as independent; with two shared frames they are not: the fit on the first
-predicting the second and the fit on the second predicting the first are one comparison seen from
-both sides, so their spread is no measure of noise, and the gain is what separates a window's
-distortion from per-frame errors (decision: docs/decisions/select-link.md).
+frames, predicts it; another frame's warp does not. The fit is chosen only where it predicts every
+left-out frame better than the link, by at least ``AlignmentConfig.select_min_gain`` times on the
+geometric mean of the left-out error ratios, and, with three or more folds, by a one-sided paired
+t-test over them at ``AlignmentConfig.select_confidence`` (each frame one observation: its pixels
+err together). With two shared frames the two folds are one comparison seen from both sides (the
+fit on the first predicting the second and the fit on the second predicting the first), so their
+spread is no measure of noise: it measures how differently the two frames see the window, which
+under forward motion is a lot, and a t-test with its one degree of freedom then refused a window's
+distortion predicted ten times better. The gain is what separates a window's distortion (predicted
+7-60x better) from per-frame errors (1.0-1.2x) (decision: docs/decisions/select-link.md).
 With one shared frame nothing is left to judge on, and the link, the model that assumes less, is
 kept.
 
@@ -27,7 +29,9 @@ fit to choose: they get what the SL(4) aligner's ``planar_model`` gives them (th
 camera-constrained fit where it explains nearly every point and far more than the link); a nearly
 planar frame's fit must still predict the left-out frames. A flat frame can still judge as the
 training frame of a fold: its camera-constrained fit (points on the plane, cameras for the rest)
-predicts the other frame where the window is distorted, as the fit of any frame does.
+predicts the other frame where the window is distorted, as the fit of any frame does. A flat frame
+measured by the link itself trains no fit: its fold is a tie that does not judge, and the other
+folds decide (as a held-out frame, a flat frame is judged like any other).
 """
 
 from __future__ import annotations
@@ -49,20 +53,27 @@ def transfer_distances(H: np.ndarray, X_a: np.ndarray, X_b: np.ndarray) -> np.nd
 
 
 def fit_predicts_better(log_ratios: np.ndarray, confidence: float, min_gain: float = 1.0) -> bool:
-    """One-sided paired t-test over the held-out parts: is the fit's held-out error (log of its median
-    transfer distance over the link's, ``log_ratios`` ``(k,)``, one per held-out part) below the
-    link's at ``confidence``, and at most ``1 / min_gain`` of it (geometric mean)? The parts are the
-    units: the pixels of one frame err together (a smooth warp), so they are one observation, not
-    thousands; two parts are nearly one (see the module doc), hence the gain."""
-    mean = float(np.mean(log_ratios))
-    if len(log_ratios) < 2 or mean >= -np.log(max(min_gain, 1.0)):
+    """Does the fit predict the held-out parts better than the link? ``log_ratios`` ``(k,)``: per
+    held-out part, the log of the fit's median transfer distance over the link's (the parts whose
+    training frame determined nothing beyond the link are left out by the caller). The fit must
+    predict every part better (each ratio below 1), by at least ``min_gain`` times on the geometric
+    mean, and, with three or more parts, pass a one-sided paired t-test at ``confidence``. The parts
+    are the units: the pixels of one frame err together (a smooth warp), so they are one
+    observation, not thousands. Two parts are one comparison seen from both sides (see the module
+    doc): their spread measures how differently the two frames see the window, not noise, so a
+    t-test on them (one degree of freedom) refuses a window's distortion whenever the two frames
+    differ, as they do under forward motion."""
+    log_ratios = np.asarray(log_ratios, dtype=np.float64)
+    if not len(log_ratios) or not np.all(log_ratios < 0) or float(np.mean(log_ratios)) >= -np.log(max(min_gain, 1.0)):
         return False
+    if len(log_ratios) < 3:
+        return True
     spread = float(np.std(log_ratios, ddof=1))
     if spread == 0.0:
         return True
     from scipy.stats import t
 
-    return mean + t.ppf(confidence, len(log_ratios) - 1) * spread / np.sqrt(len(log_ratios)) < 0
+    return float(np.mean(log_ratios)) + t.ppf(confidence, len(log_ratios) - 1) * spread / np.sqrt(len(log_ratios)) < 0
 
 
 def choose_link(fit_aligner: FrameFitter, link_aligner: FrameFitter,
@@ -87,19 +98,24 @@ def choose_link(fit_aligner: FrameFitter, link_aligner: FrameFitter,
         link.extras["select"] = {"chosen": "link", "why": "one shared frame: nothing held out to judge the fit on"}
         return link
     folds = _frame_folds(fit_aligner, pairs, fits, links, common, seed)
-    log_ratios = np.array([np.log(max(np.median(e_fit), 1e-12) / max(np.median(e_link), 1e-12)) for e_fit, e_link in folds])
-    better = fit_predicts_better(log_ratios, fit_aligner.config.select_confidence, fit_aligner.config.select_min_gain)
+    log_ratios = np.array([np.log(max(np.median(e_fit), 1e-12) / max(np.median(e_link), 1e-12))
+                           for e_fit, e_link, _ in folds])
+    informative = np.array([judged for _, _, judged in folds], dtype=bool)
+    better = fit_predicts_better(log_ratios[informative], fit_aligner.config.select_confidence,
+                                 fit_aligner.config.select_min_gain)
     chosen = fitted if better else link
-    chosen.extras["select"] = {"chosen": "fit" if better else "link", "held_out_log_ratios": log_ratios.tolist()}
+    chosen.extras["select"] = {"chosen": "fit" if better else "link", "held_out_log_ratios": log_ratios.tolist(),
+                               "judged": informative.tolist()}
     return chosen
 
 
 def _frame_folds(fit_aligner: FrameFitter, pairs: Sequence[tuple[FrameView, FrameView]], fits: FrameMeasurements,
-                 links: FrameMeasurements, frames: list[int], seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``(fit distances, link distances)`` ``(n,)`` on each frame left out, both models measured on the
-    others. A degenerate training frame measured by the link itself counts as the link (a tie: it
-    determined nothing more); measured by the camera-constrained fit, it votes with that fit, whose
-    terms the plane leaves free come from the frame's cameras."""
+                 links: FrameMeasurements, frames: list[int], seed: int) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+    """``(fit distances, link distances, judged)`` on each frame left out (distances ``(n,)``), both
+    models measured on the others. A degenerate training frame measured by the link itself is a tie
+    that does not judge (``judged`` False: it determined nothing beyond the link); measured by the
+    camera-constrained fit, it votes with that fit, whose terms the plane leaves free come from the
+    frame's cameras."""
     folds = []
     for held in frames:
         X_a, X_b = fits.points[fits.frames.index(held)]
@@ -115,6 +131,7 @@ def _frame_folds(fit_aligner: FrameFitter, pairs: Sequence[tuple[FrameView, Fram
         H_link = mean_camera_link([links.alignments[i] for i in at], [pairs[k] for k in train],
                                   [links.points[i] for i in at], fit_aligner.config.inlier_threshold,
                                   fit_aligner.config.weight_reference_frame).H
-        H_fit = H_link if fitted.extras.get("degenerate") and is_camera_link(fitted) else fitted.H
-        folds.append((transfer_distances(H_fit, X_a, X_b), transfer_distances(H_link, X_a, X_b)))
+        tie = bool(fitted.extras.get("degenerate")) and is_camera_link(fitted)
+        H_fit = H_link if tie else fitted.H
+        folds.append((transfer_distances(H_fit, X_a, X_b), transfer_distances(H_link, X_a, X_b), not tie))
     return folds

@@ -58,10 +58,11 @@ class AlignmentConfig(Section):
     median transfer error on the shared frame is more than this many times the fit's
     (decision: docs/decisions/select-link.md)."""
     select_confidence: float = setting(0.95, advanced=True, check=lambda v: 0.5 <= v < 1, allowed="in [0.5, 1)")
-    """"select" alignment: confidence at which the 15-DOF fit must predict the held-out shared
-    frames better than the calibration-and-scale link (one-sided paired t-test over the held-out
-    frames, ``sl4slam.alignment.select``); below it the link, the model that assumes less, is kept
-    (decision: docs/decisions/select-link.md)."""
+    """"select" alignment: with three or more held-out shared frames, the confidence at which the
+    15-DOF fit must predict them better than the calibration-and-scale link (one-sided paired t-test
+    over the held-out frames, ``sl4slam.alignment.select``); below it the link, the model that
+    assumes less, is kept. Two held-out frames are one comparison seen from both sides and face no
+    t-test: each must be predicted better (decision: docs/decisions/select-link.md)."""
     select_min_gain: float = setting(2.0, advanced=True,
                                      check=lambda v: v >= 1, allowed="at least 1 (1: the t-test alone)")
     """"select" alignment: the 15-DOF fit must also predict the held-out shared frames at least this
