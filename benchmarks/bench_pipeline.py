@@ -29,27 +29,25 @@ RANGES = ((10, 20), (290, 300), (990, 1000), (2990, 3000))
 """Submap ranges of the long-run table (the ones a run reaches)."""
 
 
-def resident_mib() -> float:
-    """The process's resident memory now, MiB (``VmRSS``; the peak where /proc is missing)."""
+def _status_mib(field: str) -> float:
+    """A memory field of ``/proc/self/status`` in MiB (the whole run's peak where /proc is missing)."""
     try:
         for line in open("/proc/self/status", encoding="ascii"):
-            if line.startswith("VmRSS:"):
+            if line.startswith(field + ":"):
                 return int(line.split()[1]) / 1024
     except OSError:
         pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def resident_mib() -> float:
+    """The process's resident memory now, MiB (``VmRSS``)."""
+    return _status_mib("VmRSS")
 
 
 def peak_mib() -> float:
-    """The process's peak resident memory since the last :func:`reset_peak`, MiB (``VmHWM``; the
-    whole run's peak where /proc is missing)."""
-    try:
-        for line in open("/proc/self/status", encoding="ascii"):
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    """The process's peak resident memory since the last :func:`reset_peak`, MiB (``VmHWM``)."""
+    return _status_mib("VmHWM")
 
 
 def reset_peak() -> bool:
