@@ -64,16 +64,17 @@ def fit_predicts_better(log_ratios: np.ndarray, confidence: float, min_gain: flo
     t-test on them (one degree of freedom) refuses a window's distortion whenever the two frames
     differ, as they do under forward motion."""
     log_ratios = np.asarray(log_ratios, dtype=np.float64)
-    if not len(log_ratios) or not np.all(log_ratios < 0) or float(np.mean(log_ratios)) >= -np.log(max(min_gain, 1.0)):
+    if not len(log_ratios) or not np.all(log_ratios < 0):
         return False
-    if len(log_ratios) < 3:
-        return True
-    spread = float(np.std(log_ratios, ddof=1))
-    if spread == 0.0:
+    mean = float(np.mean(log_ratios))
+    if mean >= -np.log(max(min_gain, 1.0)):
+        return False
+    spread = float(np.std(log_ratios, ddof=1)) if len(log_ratios) >= 3 else 0.0
+    if spread == 0.0:  # two parts face no t-test (see above)
         return True
     from scipy.stats import t
 
-    return float(np.mean(log_ratios)) + t.ppf(confidence, len(log_ratios) - 1) * spread / np.sqrt(len(log_ratios)) < 0
+    return mean + t.ppf(confidence, len(log_ratios) - 1) * spread / np.sqrt(len(log_ratios)) < 0
 
 
 def choose_link(fit_aligner: FrameFitter, link_aligner: FrameFitter,
