@@ -67,6 +67,7 @@ class MetricFrame:
         self.backend = backend
         self.upgrade_at_end = upgrade_at_end
         self.complete_links = complete_links
+        self._running: dict[int, tuple[int, RunningFrame]] = {}  # segment: (its keyframes then, frame)
 
     # ------------------------------------------------------------------ during the run
     def complete_link(self, alignment: Alignment, old_submap: int, old_view: FrameView, new_view: FrameView,
@@ -101,8 +102,20 @@ class MetricFrame:
 
     def running(self, submap_id: int, keyframes: Sequence[StoredKeyframe]) -> RunningFrame:
         """The metric frame of the map so far in ``submap_id``'s segment (its keyframes under iSAM2's
-        current estimate)."""
-        members = self._running_keyframes(keyframes, self.backend.segment_of(submap_id))
+        current estimate), estimated again once the segment has grown by ``running_refresh`` of its
+        keyframes since the last estimate: reading the estimate is a back-substitution of the whole
+        map, so reading it for every link would make a link's cost grow with the map."""
+        segment = self.backend.segment_of(submap_id)
+        members, count = self._running_keyframes(keyframes, segment)
+        last = self._running.get(segment)
+        if last is not None and count < last[0] * (1.0 + self.config.running_refresh):
+            return last[1]
+        frame = self._estimate_running(members)
+        self._running[segment] = (count, frame)
+        return frame
+
+    def _estimate_running(self, members: Sequence[StoredKeyframe]) -> RunningFrame:
+        """The running metric frame from ``members`` under iSAM2's current estimate."""
         if len(members) < self.config.min_keyframes:
             return RunningFrame(None, problem=f"too few keyframes for a running upgrade ({len(members)})")
         try:
@@ -156,16 +169,18 @@ class MetricFrame:
             members.setdefault(int(segment), []).append(keyframe)
         return members
 
-    def _running_keyframes(self, keyframes: Sequence[StoredKeyframe], segment: int) -> list[StoredKeyframe]:
+    def _running_keyframes(self, keyframes: Sequence[StoredKeyframe], segment: int) -> tuple[list[StoredKeyframe], int]:
         """``running_members`` of segment ``segment``'s keyframes whose submaps are in the graph (the
         same list as ``running_members(segment_members(world, keyframes)[segment], running_keyframes)``),
         found with array operations on the keyframes' submap ids: this runs for every completed link,
-        and the keyframes grow with the map while the members stay at most ``running_keyframes``."""
+        and the keyframes grow with the map while the members stay at most ``running_keyframes``.
+        Also returns how many keyframes the segment has."""
         ids = np.fromiter((k.submap_id for k in keyframes), dtype=np.int64, count=len(keyframes))
         placed = np.isin(ids, np.asarray(self.backend.submap_ids, dtype=np.int64))
         candidates = np.flatnonzero(placed)
         candidates = candidates[self.backend.segments_of(ids[candidates]) == segment]
-        return [keyframes[i] for i in candidates[running_picks(len(candidates), self.config.running_keyframes)]]
+        picks = candidates[running_picks(len(candidates), self.config.running_keyframes)]
+        return [keyframes[i] for i in picks], len(candidates)
 
     def estimate(self, members: Sequence[StoredKeyframe], world: WorldEstimate) -> MetricUpgrade:
         """``sl4slam.upgrade.estimate_metric_upgrade`` of these keyframes' cameras in ``world``."""

@@ -142,6 +142,11 @@ class UpgradeConfig(Section):
     spread evenly over the rest), so its cost stays flat as the map grows. The upgrade's 8 unknowns
     need 3 cameras (H&Z 19.3). The final upgrade uses every keyframe
     (decision: docs/decisions/planar-link-completion.md)."""
+    running_refresh: float = setting(0.1, advanced=True, check=lambda v: v >= 0, allowed=">= 0 (0: for every link)")
+    """The running upgrade is estimated again once its segment has grown by this fraction of its
+    keyframes since the last estimate (0: for every completed link). Each estimate reads iSAM2's
+    estimate of the whole map, so a fixed interval would make a link's cost grow with the map; a
+    fractional one keeps the cost per submap flat (decision: docs/decisions/planar-link-completion.md)."""
     metric_residual: float = setting(0.002, advanced=True, check=lambda v: v >= 0, allowed=">= 0")
     """Never make it worse: cameras whose constraint residual (skew, aspect and principal-point
     offset over the focal length) is already below this are metric to within the upgrade's own
