@@ -183,10 +183,14 @@ class SL4Aligner(PointAligner):
         # the particular solution nearest to the RANSAC fit, or else to the cameras' own link (which
         # keeps the shared camera already); on a plane the least perspective member is taken anyway
         link = self.camera_edge(view_a, view_b)
+        margin = self.config.planar_support_margin
+        if self.config.planar_model == "by-support" and margin * link.inlier_ratio > 1.0:
+            # no fit can explain margin times the link's share of the points: the link, unmeasured
+            link.fallback = f"{why}; used the calibration-and-scale link of the frame's cameras"
+            return link
         guess = stand_in.H if stand_in is not None else link.H
         constrained = camera_constrained_sl4(X_a, X_b, view_a.camera, view_b.camera, guess, self.config)
         if self.config.planar_model == "by-support":
-            margin = self.config.planar_support_margin
             if (constrained is None or constrained.inlier_ratio < margin * link.inlier_ratio
                     or constrained.inlier_ratio < self.config.planar_fit_min_inlier_ratio):
                 link.fallback = f"{why}; used the calibration-and-scale link of the frame's cameras"
