@@ -50,6 +50,42 @@ def peak_mib() -> float:
     return _status_mib("VmHWM")
 
 
+def settled_mib() -> float:
+    """Resident memory after a garbage collection and, where glibc allows, returning freed heap
+    pages to the system (``malloc_trim``), MiB: what the live objects hold."""
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+    return resident_mib()
+
+
+def memory_parts(pipeline, source) -> list[tuple[str, float]]:
+    """What each part of a finished run holds, MiB: the resident memory each release frees, in this
+    order (the preloaded lap, retrieval, the graph with the readers that keep it, the keyframe
+    store, the rest of the pipeline). Destroys the pipeline's parts; call it last."""
+    steps = [
+        ("the preloaded lap (the replay's own)", lambda: setattr(source, "_frames", None)),
+        ("retrieval (ORB features, words, hashed rows)", lambda: setattr(pipeline, "retrieval", None)),
+        ("the graph (iSAM2 and its factors)", lambda: [setattr(pipeline, name, None)
+                                                      for name in ("backend", "metric_frame", "loop_verifier")]),
+        ("the keyframe store", lambda: setattr(pipeline, "keyframe_store", None)),
+        ("the rest of the pipeline (ledger, frontend, selector)", lambda: pipeline.__dict__.clear()),
+    ]
+    parts, before = [], settled_mib()
+    for name, release in steps:
+        release()
+        after = settled_mib()
+        parts.append((name, before - after))
+        before = after
+    parts.append(("left: the interpreter and its libraries", before))
+    return parts
+
+
 def reset_peak() -> bool:
     """Start a new peak-memory mark (Linux: ``/proc/self/clear_refs``); whether that was possible."""
     try:
@@ -72,6 +108,8 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="another setting for the run, as a config key (repeatable), e.g. alignment.max_correspondences=8000")
     parser.add_argument("--plot", help="also draw ms per submap and RSS against the submap index into this PNG")
+    parser.add_argument("--memory-parts", action="store_true",
+                        help="at the end, release the run's parts one by one and report what each held")
     parser.add_argument("--out", default=str(result_file("pipeline")))
     args = parser.parse_args()
     from sl4slam.io import open_source
@@ -178,6 +216,10 @@ def main() -> None:
         f"Keyframe selection (runs on every input frame, not per submap): median "
         f"{np.median(keyframe_seconds) * 1000:.1f} ms per frame.",
         "",
+        f"Of the resident memory, {source.preloaded_bytes / 2**20:.0f} MiB is the preloaded lap "
+        f"({len(source.base)} frames' images and depth maps): the replay's own, not held by a run that "
+        f"reads its frames from a source.",
+        "",
         f"Memory kept per keyframe: {stored / 1e6:.3f} MB (float16 depth, bit-packed mask, half-resolution uint8 confidence rank, camera; no colours); "
         f"process peak RSS {rss:.0f} MiB after {len(pipeline.keyframes)} keyframes.",
         "",
@@ -189,6 +231,13 @@ def main() -> None:
         f"(a line through RSS against keyframes, sampled every 10 submaps).",
         "",
     ]
+    if args.memory_parts:
+        keyframes = len(pipeline.keyframes)
+        del store  # the report's own reference: the store is released with the pipeline's
+        lines += ["What the finished run holds, part by part (resident memory freed by releasing each, "
+                  "after a garbage collection and `malloc_trim`):", "", "| part | MiB | bytes per keyframe |", "|---|---|---|"]
+        lines += [f"| {name} | {mib:.0f} | {mib * 2**20 / keyframes:.0f} |" for name, mib in memory_parts(pipeline, source)]
+        lines.append("")
     write_report(args.out, lines)
     if args.plot:
         plot(args.plot, totals, submap_trace, [m for _, m in rss_trace])

@@ -166,6 +166,13 @@ class LapSource:
     def __len__(self) -> int:
         return len(self.base) * self.laps
 
+    @property
+    def preloaded_bytes(self) -> int:
+        """Bytes of the preloaded lap's images and depth maps (0 when not preloaded): memory of the
+        replay itself, which a run reading its frames from a source does not hold."""
+        frames = self._frames or []
+        return sum(f.rgb.nbytes + (f.depth.nbytes if f.depth is not None else 0) for f in frames)
+
     def get(self, index: int):
         """Frame ``index`` of the replay (an :class:`sl4slam.types.Frame`)."""
         from sl4slam.types import Frame
