@@ -333,3 +333,33 @@ def test_matrix_log_and_exp_agree_with_scipy_and_invert_each_other() -> None:
         for a, e in zip(A, E):
             np.testing.assert_allclose(e, expm(a), rtol=0, atol=1e-12 * np.abs(e).max())
         assert np.array_equal(matrix_log(M[2]), L[2]) and np.array_equal(matrix_exp(A[2]), E[2])
+
+
+@pytest.mark.parametrize("link_ratio, fit_ratio, chosen, fitted", [
+    (0.5, 1.0, "link", False),    # the fit cannot explain 2.5x the link's share: not measured
+    (0.3, 0.99, "fit", True),     # 0.99 >= 2.5 * 0.3 and >= 0.97: the fit
+    (0.3, 0.74, "link", True),    # measured, and short of 2.5x
+    (0.39, 0.96, "link", True),   # measured, 2.5x but below planar_fit_min_inlier_ratio
+])
+def test_by_support_measures_the_constrained_fit_only_where_it_can_win(monkeypatch, link_ratio, fit_ratio,
+                                                                        chosen, fitted) -> None:
+    """A degenerate frame under ``planar_model = "by-support"``: the camera-constrained fit wins only
+    with ``planar_support_margin`` times the link's inlier share and at least
+    ``planar_fit_min_inlier_ratio``; where the link's share makes the first impossible, the fit is
+    not measured at all."""
+    import sl4slam.alignment.aligner as aligner_module
+    from sl4slam.alignment.aligner import SL4Aligner
+    from sl4slam.types import Alignment, FrameView
+
+    def alignment(ratio: float) -> Alignment:
+        return Alignment(np.eye(4), np.ones(10, bool), ratio, 0.0, "sl4")
+
+    calls = []
+    monkeypatch.setattr(SL4Aligner, "camera_edge", lambda self, view_a, view_b: alignment(link_ratio))
+    monkeypatch.setattr(aligner_module, "camera_constrained_sl4",
+                        lambda *args: calls.append(args) or alignment(fit_ratio))
+    view = FrameView(np.zeros((2, 2, 3), np.float32), np.ones((2, 2), bool), np.eye(3), np.eye(4))
+    result = SL4Aligner(AlignmentConfig())._degenerate(np.zeros((10, 3)), np.zeros((10, 3)), view, view, 0, "flat")
+    assert result.inlier_ratio == (fit_ratio if chosen == "fit" else link_ratio)
+    assert ("camera-constrained" in result.fallback) == (chosen == "fit")
+    assert bool(calls) == fitted
