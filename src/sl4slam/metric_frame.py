@@ -106,12 +106,13 @@ class MetricFrame:
         keyframes since the last estimate: reading the estimate is a back-substitution of the whole
         map, so reading it for every link would make a link's cost grow with the map."""
         segment = self.backend.segment_of(submap_id)
-        members, count = self._running_keyframes(keyframes, segment)
+        placed = self._segment_keyframes(keyframes, segment)
         last = self._running.get(segment)
-        if last is not None and count < last[0] * (1.0 + self.config.running_refresh):
+        if last is not None and len(placed) < last[0] * (1.0 + self.config.running_refresh):
             return last[1]
-        frame = self._estimate_running(members)
-        self._running[segment] = (count, frame)
+        picks = placed[running_picks(len(placed), self.config.running_keyframes)]
+        frame = self._estimate_running([keyframes[i] for i in picks])
+        self._running[segment] = (len(placed), frame)
         return frame
 
     def _estimate_running(self, members: Sequence[StoredKeyframe]) -> RunningFrame:
@@ -169,18 +170,15 @@ class MetricFrame:
             members.setdefault(int(segment), []).append(keyframe)
         return members
 
-    def _running_keyframes(self, keyframes: Sequence[StoredKeyframe], segment: int) -> tuple[list[StoredKeyframe], int]:
-        """``running_members`` of segment ``segment``'s keyframes whose submaps are in the graph (the
-        same list as ``running_members(segment_members(world, keyframes)[segment], running_keyframes)``),
-        found with array operations on the keyframes' submap ids: this runs for every completed link,
-        and the keyframes grow with the map while the members stay at most ``running_keyframes``.
-        Also returns how many keyframes the segment has."""
+    def _segment_keyframes(self, keyframes: Sequence[StoredKeyframe], segment: int) -> np.ndarray:
+        """Positions ``(n,)`` in ``keyframes`` of segment ``segment``'s keyframes whose submaps are in
+        the graph, in time order (``running_picks`` of them give the same members as
+        ``running_members(segment_members(world, keyframes)[segment], running_keyframes)``), found
+        with array operations on the keyframes' submap ids: this runs for every completed link."""
         ids = np.fromiter((k.submap_id for k in keyframes), dtype=np.int64, count=len(keyframes))
         placed = np.isin(ids, np.asarray(self.backend.submap_ids, dtype=np.int64))
         candidates = np.flatnonzero(placed)
-        candidates = candidates[self.backend.segments_of(ids[candidates]) == segment]
-        picks = candidates[running_picks(len(candidates), self.config.running_keyframes)]
-        return [keyframes[i] for i in picks], len(candidates)
+        return candidates[self.backend.segments_of(ids[candidates]) == segment]
 
     def estimate(self, members: Sequence[StoredKeyframe], world: WorldEstimate) -> MetricUpgrade:
         """``sl4slam.upgrade.estimate_metric_upgrade`` of these keyframes' cameras in ``world``."""
