@@ -17,6 +17,7 @@ import os
 import platform
 import resource
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -66,10 +67,10 @@ def settled_mib() -> float:
 
 def memory_parts(pipeline, source) -> list[tuple[str, float]]:
     """What each part of a finished run holds, MiB: the resident memory each release frees, in this
-    order (the preloaded lap, retrieval, the graph with the readers that keep it, the keyframe
+    order (the preloaded lap when held in RAM, retrieval, the graph with the readers that keep it, the keyframe
     store, the rest of the pipeline). Destroys the pipeline's parts; call it last."""
-    steps = [
-        ("the preloaded lap (the replay's own)", lambda: setattr(source, "_frames", None)),
+    steps = [("the preloaded lap (the replay's own)", lambda: setattr(source, "_frames", None))] if source.preloaded_bytes else []
+    steps += [
         ("retrieval (ORB features, words, hashed rows)", lambda: setattr(pipeline, "retrieval", None)),
         ("the graph (iSAM2 and its factors)", lambda: [setattr(pipeline, name, None)
                                                       for name in ("backend", "metric_frame", "loop_verifier")]),
@@ -110,6 +111,12 @@ def main() -> None:
     parser.add_argument("--plot", help="also draw ms per submap and RSS against the submap index into this PNG")
     parser.add_argument("--memory-parts", action="store_true",
                         help="at the end, release the run's parts one by one and report what each held")
+    parser.add_argument("--lap-in-ram", action="store_true",
+                        help="hold the decoded lap in the process (as the figures before 2026-11-29 did: 610 MiB "
+                             "of the resident memory) instead of reading its frames back from files")
+    parser.add_argument("--keep-running-state", action="store_true",
+                        help="finish() without releasing retrieval's database and iSAM2 first (as the figures "
+                             "before 2026-11-29 did), to measure what the release saves")
     parser.add_argument("--out", default=str(result_file("pipeline")))
     args = parser.parse_args()
     from sl4slam.io import open_source
@@ -122,8 +129,11 @@ def main() -> None:
         **({"submap.keyframes_in_ram": args.keyframes_in_ram} if args.keyframes_in_ram is not None else {}),
         **parse_settings(args.set, "--set"),
     })
-    # the lap preloaded, so the benchmark does not time PNG decoding
-    source = LapSource(open_source(str(synthetic_world(518, 294))), laps=10_000, preload=True)
+    # the lap decoded once, so the benchmark does not time PNG decoding; its frames are read back from
+    # raw files (the page cache), so that the process holds only what the run holds
+    lap_folder = tempfile.TemporaryDirectory(prefix="sl4slam-lap-")
+    source = LapSource(open_source(str(synthetic_world(518, 294))), laps=10_000, preload=True,
+                       folder=None if args.lap_in_ram else lap_folder.name)
     pipeline = make_pipeline(config)
     keyframe_seconds: list[float] = []  # frames whose feed ran no submap: keyframe selection
     rss_trace: list[tuple[int, float]] = []  # (keyframes stored, resident MiB) every 10 submaps
@@ -151,7 +161,8 @@ def main() -> None:
     loop_peak, loop_end = peak_mib(), resident_mib()
     separate_peak = reset_peak()  # so that the peak of finish() is measured on its own
     t0 = time.perf_counter()
-    pipeline.finish()  # once per run: final graph polish and every keyframe's pose
+    # once per run, as `sl4slam run` ends: the running state released, the final polish, every keyframe's pose
+    pipeline.finish(release=not args.keep_running_state)
     result_seconds = time.perf_counter() - t0
     finish_peak = peak_mib()
     per_submap = pipeline.ledger.submap_seconds
@@ -208,7 +219,8 @@ def main() -> None:
         f"{np.median(loop_backend) if loop_backend else 0:.1f} ms, max {max(loop_backend) if loop_backend else 0:.1f} ms. "
         f"The loops found here reach back to the first lap, so their span grows with the map.",
         "",
-        f"Once per run, `finish()` (Gauss-Newton polish of the whole graph, then every keyframe's pose): "
+        f"Once per run, `finish()` ({'' if args.keep_running_state else 'retrieval and iSAM2 released, then '}"
+        f"Gauss-Newton polish of the whole graph, then every keyframe's pose): "
         f"{result_seconds * 1000:.0f} ms for {len(per_submap)} submaps"
         + (f"; resident memory {loop_end:.0f} MiB at the end of the loop (its peak {loop_peak:.0f} MiB), "
            f"peak during `finish()` {finish_peak:.0f} MiB." if separate_peak else "."),
@@ -216,9 +228,11 @@ def main() -> None:
         f"Keyframe selection (runs on every input frame, not per submap): median "
         f"{np.median(keyframe_seconds) * 1000:.1f} ms per frame.",
         "",
-        f"Of the resident memory, {source.preloaded_bytes / 2**20:.0f} MiB is the preloaded lap "
-        f"({len(source.base)} frames' images and depth maps): the replay's own, not held by a run that "
-        f"reads its frames from a source.",
+        (f"Of the resident memory, {source.preloaded_bytes / 2**20:.0f} MiB is the preloaded lap "
+         f"({len(source.base)} frames' images and depth maps): the replay's own, not held by a run that "
+         f"reads its frames from a source." if source.preloaded_bytes else
+         f"The lap's {len(source.base)} decoded frames are read back from raw files (the page cache): the "
+         f"resident memory is the run's own."),
         "",
         f"Memory kept per keyframe: {stored / 1e6:.3f} MB (float16 depth, bit-packed mask, half-resolution uint8 confidence rank, camera; no colours); "
         f"process peak RSS {rss:.0f} MiB after {len(pipeline.keyframes)} keyframes.",

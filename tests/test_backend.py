@@ -472,3 +472,31 @@ def test_make_backend_builds_the_named_graph_and_the_section_checks_itself():
                 dict(relinearize_skip=0)):
         with pytest.raises(UserError):
             dataclasses.replace(BackendConfig(), **bad).validate()
+
+
+@pytest.mark.parametrize("kind", ["sl4", "sim3"])
+def test_a_frozen_graph_reads_the_same_estimates_and_takes_nothing_more(kind):
+    """``freeze`` drops iSAM2 at the end of a run: the estimate, polished or not, reads as before,
+    and the graph refuses more factors and the loop test (which needs iSAM2)."""
+    truth, odometry, loops = lap_problem(kind, laps=2)
+    group = SL4Backend if kind == "sl4" else Sim3Backend
+    backend = group(BackendConfig(kind=kind), revisit_priors=True)
+    run(backend, odometry, loops)
+    before, polished = backend.world_estimate().H_world_submap, backend.world_estimate(final=True).H_world_submap
+    backend.add_submap(len(odometry) + 1, odometry[0])  # pending: nothing is dropped yet
+    assert not backend.freeze() and backend.graph._isam is not None
+    backend.update()
+    before, polished = backend.world_estimate().H_world_submap, backend.world_estimate(final=True).H_world_submap
+    assert backend.freeze() and backend.freeze()  # twice: nothing more to do
+    assert backend.graph._isam is None and backend.graph._committed_factors.size() == 0
+    after, polished_after = backend.world_estimate().H_world_submap, backend.world_estimate(final=True).H_world_submap
+    assert before.keys() == after.keys() == polished_after.keys()
+    for k in before:
+        np.testing.assert_array_equal(after[k], before[k])  # the same values, kept
+        np.testing.assert_array_equal(polished_after[k], polished[k])  # the same polish from them
+    np.testing.assert_array_equal(backend.H_world_submap(3), before[3])
+    with pytest.raises(RuntimeError, match="frozen"):
+        backend.add_submap(len(odometry) + 2, odometry[0])
+    with pytest.raises(RuntimeError, match="frozen"):
+        backend.loop_chi2(0, 3, np.eye(4), np.eye(backend.graph.dim))
+    assert backend.num_submaps == len(odometry) + 2  # the refused submap was not counted

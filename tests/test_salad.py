@@ -409,6 +409,19 @@ def test_salad_retrieval_follows_the_query_semantics(tiny_model) -> None:
     assert strict.query(as_frames([100, 101], revisit), 6, 5) == []
 
 
+
+def test_a_closed_salad_retrieval_frees_its_index_and_refuses_more(tiny_model) -> None:
+    retrieval = SaladRetrieval(RetrievalConfig(kind="salad", tau_interval=0, salad_image_size=224), model=tiny_model)
+    images = random_images(6, seed=3)
+    retrieval.add(as_frames([0, 1, 2], images[:3]), 0)
+    assert len(retrieval.index) == 3
+    retrieval.close()
+    assert len(retrieval.index) == 0 and retrieval.index._vectors.shape[0] == 1 and retrieval.model is None
+    with pytest.raises(RuntimeError, match="closed"):
+        retrieval.query(as_frames([9], images[3:4]), 5, max_results=1)
+    with pytest.raises(RuntimeError, match="closed"):
+        retrieval.add(as_frames([9], images[3:4]), 5)
+
 # ----------------------------------------------------------------------------- full size (slow)
 
 

@@ -147,16 +147,41 @@ class LapSource:
         laps: how many laps the source holds.
         preload: decode every frame of the lap once, up front, so that a replay does not time image
             decoding.
+        folder: with ``preload``, keep the decoded frames there as raw ``.npy`` arrays and read each
+            back when it is asked for (from the page cache after the first lap), instead of holding
+            them in the process: the replay's resident memory is then the run's alone. ``None``:
+            held in RAM.
 
     Frame ``i`` is frame ``i % len(base)`` of the lap with index ``i`` and timestamp ``i / 30`` s.
     """
 
-    def __init__(self, base, laps: int, preload: bool = False) -> None:
+    def __init__(self, base, laps: int, preload: bool = False, folder: str | Path | None = None) -> None:
         self.base = base
         self.laps = laps
         self.name = f"{base.name} x{laps} laps"
         self.skipped: list[str] = []
-        self._frames = [base.get(i) for i in range(len(base))] if preload else None
+        self._frames = None
+        self._folder = Path(folder) if folder is not None and preload else None
+        if preload:
+            self._frames = [self._keep(i, base.get(i)) for i in range(len(base))]
+
+    def _keep(self, index: int, frame):
+        """The frame as the replay keeps it: itself, or (with a folder) its arrays written to files
+        and replaced by their paths."""
+        if self._folder is None:
+            return frame
+        import dataclasses
+
+        import numpy as np
+
+        self._folder.mkdir(parents=True, exist_ok=True)
+        files = {}
+        for name in ("rgb", "depth"):
+            array = getattr(frame, name)
+            if array is not None:
+                files[name] = self._folder / f"{index:06d}_{name}.npy"
+                np.save(files[name], array)
+        return dataclasses.replace(frame, rgb=files["rgb"], depth=files.get("depth"))
 
     @property
     def has_ground_truth(self) -> bool:
@@ -168,8 +193,11 @@ class LapSource:
 
     @property
     def preloaded_bytes(self) -> int:
-        """Bytes of the preloaded lap's images and depth maps (0 when not preloaded): memory of the
-        replay itself, which a run reading its frames from a source does not hold."""
+        """Bytes of the preloaded lap's images and depth maps held in RAM (0 when not preloaded, or
+        kept in files): memory of the replay itself, which a run reading its frames from a source
+        does not hold."""
+        if self._folder is not None:
+            return 0
         frames = self._frames or []
         return sum(f.rgb.nbytes + (f.depth.nbytes if f.depth is not None else 0) for f in frames)
 
@@ -179,7 +207,12 @@ class LapSource:
 
         lap_index = index % len(self.base)
         frame = self._frames[lap_index] if self._frames is not None else self.base.get(lap_index)
-        return Frame(index=index, timestamp=index / 30.0, rgb=frame.rgb, depth=frame.depth,
+        rgb, depth = frame.rgb, frame.depth
+        if self._folder is not None:
+            import numpy as np
+
+            rgb, depth = np.load(rgb), (np.load(depth) if depth is not None else None)
+        return Frame(index=index, timestamp=index / 30.0, rgb=rgb, depth=depth,
                      T_world_cam=frame.T_world_cam, K=frame.K, path=frame.path)
 
     def __iter__(self):

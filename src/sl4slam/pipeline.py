@@ -137,6 +137,7 @@ class SLAMPipeline:
         self.colors: SourceColors | None = None  # the keyframes' colours, re-read from the source
         self._next_submap_id = 0  # submap ids handed out (one may be in the model)
         self._input: _Input | None = None
+        self._released = False  # see release()
         if objects is _BUILD:
             objects = self.config.objects.setup(resolved.device) if self.config.objects.enabled else None
         self.objects = objects
@@ -185,10 +186,11 @@ class SLAMPipeline:
         return self.ledger.num_loops
 
     # ------------------------------------------------------------------ driving
-    def run(self, source: FrameSource, progress: bool = True) -> SLAMResult:
-        """Process every frame of ``source`` (or until :attr:`stop_requested`) and return the result."""
+    def run(self, source: FrameSource, progress: bool = True, release: bool = False) -> SLAMResult:
+        """Process every frame of ``source`` (or until :attr:`stop_requested`) and return the result
+        (``release``: see :meth:`finish`)."""
         self.consume(source, progress)
-        return self.finish()
+        return self.finish(release)
 
     def consume(self, source: FrameSource, progress: bool = True) -> None:
         """Feed the frames of ``source`` (:meth:`start`, :meth:`feed`, :meth:`flush`; no final result)
@@ -217,6 +219,9 @@ class SLAMPipeline:
 
         Raises ``UserError`` for a source the frontend cannot use (checked before any frame is read).
         """
+        if self._released:
+            raise RuntimeError("SLAMPipeline.start after release(): the pipeline freed its running state at the end "
+                               "of its run; make a new pipeline")
         problem = source_problem(source, self.frontend.capabilities, self.frontend.name, self.config.source,
                                  workers=self.resolved.workers, ray_address=self.config.ray_address)
         if problem:
@@ -268,10 +273,30 @@ class SLAMPipeline:
                 "the camera barely moves — lower --tau-disparity or use a longer sequence"
             )
 
-    def finish(self) -> SLAMResult:
-        """:meth:`flush` (when the input is still open), then :meth:`result`."""
+    def finish(self, release: bool = False) -> SLAMResult:
+        """:meth:`flush` (when the input is still open), then :meth:`result`.
+
+        Args:
+            release: the run ends here: :meth:`release` before the final polish, which lowers the
+                peak memory of a long run's end by what only a growing map needs; the pipeline
+                takes no more frames afterwards. The result is the same either way.
+        """
         self.flush()
+        if release:
+            self.release()
         return self.result()
+
+    def release(self) -> None:
+        """Free what only a growing map needs, once the input is closed: the retrieval's stored
+        descriptors (its ``close``, where it has one) and the graph's incremental solver
+        (``Backend.freeze``), together about 40 kB a keyframe with ORB retrieval. :meth:`result`
+        and :meth:`snapshot` give what they gave before; :meth:`start` refuses afterwards."""
+        if self._input is not None:
+            raise RuntimeError("SLAMPipeline.release needs the input closed first (flush or finish)")
+        if self.retrieval is not None and hasattr(self.retrieval, "close"):
+            self.retrieval.close()
+        self.backend.freeze()
+        self._released = True
 
     def _started(self) -> _Input:
         if self._input is None:

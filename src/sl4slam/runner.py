@@ -320,7 +320,7 @@ def _run(source, live: bool, out: Path, existed: bool, resolved: ResolvedConfig,
     if not pipeline.keyframes:
         raise RunInterrupted(f"{stop_reason or 'no keyframes'}; nothing was finished, so no result was written to "
                              f"{out}{again}", exit_code)
-    result = pipeline.finish()
+    result = pipeline.finish(release=True)  # nothing is added after: the final polish gets the room
     result.stats["seconds_total"] = time.perf_counter() - start
     extra = {"stop_reason": stop_reason} if stop_reason else {}
     if live:

@@ -206,6 +206,8 @@ class Retrieval(Protocol):
     # Optional, for running the model's windows ahead of the graph (``sl4slam.schedule``):
     # ``mark() -> token`` and ``rewind(token)`` forget what was added and asked since the mark, so
     # that the same queries give the same answers again.
+    # Optional, for the end of a run (``SLAMPipeline.release``): ``close()`` frees the stored
+    # keyframes' descriptors; the retrieval takes and answers nothing more afterwards.
 
 
 @dataclass

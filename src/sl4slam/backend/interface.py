@@ -131,6 +131,14 @@ class Backend(ABC):
                 the one the whole estimate holds, without converting the rest of the map.
         """
 
+    @abstractmethod
+    def freeze(self) -> bool:
+        """The run adds nothing more: keep the current estimate and free the incremental solver's
+        state (most of the graph's memory), so that the final polish has that room. Reading the
+        estimate (:meth:`world_estimate`, ``final`` or not) gives what it gave before; adding to the
+        graph, updating it and :meth:`loop_chi2` raise ``RuntimeError`` afterwards. Returns whether
+        it is frozen (not while an update is pending: then nothing is freed)."""
+
     @property
     @abstractmethod
     def num_submaps(self) -> int:

@@ -248,6 +248,9 @@ class KeyframeBackend(Backend):
         submap = self._submaps[submap_id]
         return normalize_sl4(self.nodes.estimate(submap.nodes[0]) @ submap.frames.T_cam_submap[0])
 
+    def freeze(self) -> bool:
+        return self.nodes.freeze()
+
     def world_estimate(self, final: bool = False, submaps: Collection[int] | None = None) -> WorldEstimate:
         """Every submap and every keyframe (through its own node), from iSAM2 or polished (``final``);
         with ``submaps``, only those and their keyframes (only their nodes are read out).

@@ -161,6 +161,7 @@ class PoseGraph(ABC):
         self.config = config
         self.revisit_priors = revisit_priors
         self._isam = self._new_isam()
+        self._frozen: gtsam.Values | None = None  # iSAM2's last estimate, once freeze() dropped iSAM2
         self._prior_noise = gtsam.noiseModel.Isotropic.Sigma(self.dim, config.prior_sigma)
         self._segment_noise = gtsam.noiseModel.Isotropic.Sigma(self.dim, config.segment_sigma)
 
@@ -226,9 +227,14 @@ class PoseGraph(ABC):
     def _prior_factor(self, key: int, Z: Any, noise: Any) -> Any:
         """GTSAM prior factor."""
 
-    @abstractmethod
     def _estimate_one(self, key: int) -> Any:
-        """iSAM2's current estimate of one variable (no full back-substitution)."""
+        """iSAM2's current estimate of one variable (no full back-substitution); after
+        :meth:`freeze`, the one it had then."""
+        return self._at(self._frozen, key) if self._frozen is not None else self._isam_estimate_one(key)
+
+    @abstractmethod
+    def _isam_estimate_one(self, key: int) -> Any:
+        """iSAM2's current estimate of one variable, read from iSAM2."""
 
     @abstractmethod
     def _hat(self, xi: np.ndarray) -> np.ndarray:
@@ -280,6 +286,7 @@ class PoseGraph(ABC):
 
     def _push(self, factor: Any, exact: Any = None) -> None:
         """Queue a factor for iSAM2 and its exact form (``None``: the same) for the final polish."""
+        self._live()
         self._pending_factors.push_back(factor)
         self._pending_exact.push_back(factor if exact is None else exact)
 
@@ -400,6 +407,45 @@ class PoseGraph(ABC):
         return i, self._check("revisit prior", X_older @ self._inverse(H_i_j)), information
 
     # ------------------------------------------------------------------ optimization
+    def _live(self) -> gtsam.ISAM2:
+        """iSAM2, or ``RuntimeError`` once :meth:`freeze` has dropped it."""
+        if self._frozen is not None:
+            raise RuntimeError("the graph was frozen at the end of its run: it takes no more factors "
+                               "and has no incremental solver to ask")
+        return self._isam
+
+    @property
+    def frozen(self) -> bool:
+        """Whether :meth:`freeze` has dropped iSAM2."""
+        return self._frozen is not None
+
+    def freeze(self) -> bool:
+        """End the graph's growth: keep iSAM2's current estimate and drop iSAM2 itself (its Bayes
+        tree and linearized factors) and the copy of its factors kept for a roll-back. Those hold
+        nearly all of the graph's memory (about 25 kB per keyframe node of the keyframe graph, the
+        exact factors about 1 kB), which the final polish can then use. Everything that reads the
+        estimate (:meth:`estimates`, :meth:`final_estimates`, :meth:`estimate`) reads the kept one
+        and gives what it gave before; adding nodes or factors, updating and :meth:`loop_chi2`
+        raise ``RuntimeError``. Returns whether the graph is frozen: not while factors are pending
+        (an update is still to be made; nothing is dropped then). Freezing twice does nothing.
+        """
+        if self._frozen is not None:
+            return True
+        if self._pending_factors.size() or self._pending_values.size():
+            return False
+        self._frozen = self._isam.calculateBestEstimate() if self._isam.size() else gtsam.Values()
+        self._isam = None
+        self._committed_factors = gtsam.NonlinearFactorGraph()
+        self._committed_values = gtsam.Values()
+        return True
+
+    def _best_estimate(self) -> gtsam.Values:
+        """iSAM2's estimate of every committed node (after :meth:`freeze`, the one kept then); empty
+        before the first update."""
+        if self._frozen is not None:
+            return self._frozen
+        return self._isam.calculateBestEstimate() if self._isam.size() else gtsam.Values()
+
     def update(self) -> None:
         """One iSAM2 step with the pending factors; after loop closures, iterate while steps are large.
 
@@ -537,7 +583,7 @@ class PoseGraph(ABC):
         Costs O(number of nodes) (a full back-substitution); nodes added since the last
         :meth:`update` report their initial guess.
         """
-        values = self._isam.calculateBestEstimate() if self._isam.size() else gtsam.Values()
+        values = self._best_estimate()
         out: dict[int, np.ndarray] = {}
         for node in self._order:
             key = self.key(node)
@@ -555,20 +601,20 @@ class PoseGraph(ABC):
         """
         if self._pending_factors.size() or self._pending_values.size():
             self.update()
-        if not self._isam.size():
+        if not self._best_estimate().size():
             return self.estimates()
         values = self.polished_values(max_iterations)
         return {node: self._from_gtsam(self._at(values, self.key(node))) for node in self._order}
 
-    def polished_values(self, max_iterations: int = 20) -> gtsam.Values:
-        """iSAM2's estimate polished by batch Gauss-Newton on :meth:`factor_graph` (see
-        :meth:`final_estimates`), as ``gtsam.Values``."""
-        return gauss_newton(self.factor_graph(), self._isam.calculateBestEstimate(), max_iterations)
+    def polished_values(self, max_iterations: int = 20, start: gtsam.Values | None = None) -> gtsam.Values:
+        """iSAM2's estimate (or ``start``, when it is that estimate already read) polished by batch
+        Gauss-Newton on :meth:`factor_graph` (see :meth:`final_estimates`), as ``gtsam.Values``."""
+        return gauss_newton(self.factor_graph(), self._best_estimate() if start is None else start, max_iterations)
 
     def isam_values(self) -> gtsam.Values:
         """iSAM2's current estimate as ``gtsam.Values`` (keys :meth:`key`; nodes added since the last
         :meth:`update` are not in it), e.g. to start a batch optimizer of :meth:`factor_graph` from."""
-        return self._isam.calculateBestEstimate()
+        return self._best_estimate()
 
     def matrices_in(self, values: gtsam.Values) -> dict[int, np.ndarray]:
         """``{node: (4, 4) float64}`` every node's matrix as ``values`` hold it (e.g. a batch
@@ -598,8 +644,9 @@ class PoseGraph(ABC):
         order = list(factor.keys())
         if order != keys:  # jacobian blocks follow the factor's key order
             A = np.concatenate([A[:, order.index(k) * self.dim:(order.index(k) + 1) * self.dim] for k in keys], axis=1)
-        joint = (self._isam.marginalCovariance(keys[0]) if len(keys) == 1
-                 else self._isam.jointMarginalCovariance(keys).fullMatrix())
+        isam = self._live()
+        joint = (isam.marginalCovariance(keys[0]) if len(keys) == 1
+                 else isam.jointMarginalCovariance(keys).fullMatrix())
         covariance = A @ joint @ A.T + np.linalg.inv(information)
         error = np.asarray(factor.unwhitenedError(values), dtype=np.float64)
         return float(error @ np.linalg.solve(covariance, error))

@@ -73,7 +73,7 @@ class Sim3PoseGraph(PoseGraph):
     def _hat(self, xi: np.ndarray) -> np.ndarray:
         return np.asarray(gtsam.Similarity3.Hat(np.asarray(xi, dtype=np.float64)), dtype=np.float64)
 
-    def _estimate_one(self, key: int) -> gtsam.Similarity3:
+    def _isam_estimate_one(self, key: int) -> gtsam.Similarity3:
         return self._isam.calculateEstimateSimilarity3(key)
 
     def _between_factor(

@@ -44,7 +44,7 @@ class SL4PoseGraph(PoseGraph):
     def _hat(self, xi: np.ndarray) -> np.ndarray:
         return np.asarray(gtsam.SL4.Hat(np.asarray(xi, dtype=np.float64)), dtype=np.float64)
 
-    def _estimate_one(self, key: int) -> gtsam.SL4:
+    def _isam_estimate_one(self, key: int) -> gtsam.SL4:
         return self._isam.calculateEstimateSL4(key)
 
     def _between_factor(self, key_a: int, key_b: int, Z_a_b: gtsam.SL4, noise: Any) -> gtsam.BetweenFactorSL4:
@@ -59,10 +59,9 @@ class SL4PoseGraph(PoseGraph):
         :meth:`final_estimates`) for graphs of thousands of nodes, without a per-node normalization."""
         if final and (self._pending_factors.size() or self._pending_values.size()):
             self.update()
-        if not self._isam.size():
-            values = gtsam.Values()
-        else:
-            values = self.polished_values() if final else self._isam.calculateBestEstimate()
+        values = self._best_estimate()
+        if final and values.size():
+            values = self.polished_values(start=values)
         keys = [self.key(node) for node in (self._order if nodes is None else nodes)]
         return np.array([(self._pending_values if self._pending_values.exists(key) else values).atSL4(key).matrix()
                          for key in keys], dtype=np.float64).reshape(-1, 4, 4)

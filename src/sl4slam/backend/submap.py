@@ -59,6 +59,9 @@ class SubmapBackend(Backend):
     def H_world_submap(self, submap_id: int) -> np.ndarray:
         return self.graph.estimate(submap_id)
 
+    def freeze(self) -> bool:
+        return self.graph.freeze()
+
     def world_estimate(self, final: bool = False, submaps: Collection[int] | None = None) -> WorldEstimate:
         estimates = self.graph.final_estimates() if final else self.graph.estimates()
         if submaps is not None:

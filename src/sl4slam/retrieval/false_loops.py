@@ -113,6 +113,13 @@ class FalseLoopRetrieval:
             self._stored.append(_Stored(int(frame.index), int(submap_id), np.asarray(frame.T_world_cam, np.float64),
                                         _grid_points(frame), _thumbnail(frame.rgb)))
 
+    def close(self) -> None:
+        """``inner``'s close (when it has one), and the stored keyframes' poses, points and
+        thumbnails freed; :attr:`injected` and :attr:`proposed` stay."""
+        if hasattr(self.inner, "close"):
+            self.inner.close()
+        self._stored = []
+
     def spill_features(self, folder, in_ram: int) -> None:
         """``inner``'s, when it can keep older keyframes' features in a file."""
         if hasattr(self.inner, "spill_features"):

@@ -191,10 +191,29 @@ class OrbRetrieval:
         self._word_lookup: np.ndarray | None = None
         # Features of the latest query batch, keyed by frame index, reused by the following add().
         self._pending: dict[int, tuple[np.ndarray, OrbFeatures]] = {}
+        self.closed = False  # see close()
 
     def __len__(self) -> int:
         """Number of stored keyframes."""
         return self._count
+
+    def close(self) -> None:
+        """Free the database at the end of a run: every stored keyframe's words, hashed row and
+        features (in RAM, and the features file), about 17 kB a keyframe in RAM. ``len`` still
+        counts what was stored; :meth:`add` and :meth:`query` raise ``RuntimeError`` afterwards."""
+        self.closed = True
+        if self._spill is not None:
+            self._spill.close()
+        self._spill, self._in_ram, self._pending = None, [], {}
+        self._tf_indptr, self._tf_steps = np.zeros(1, np.int64), np.zeros(0, np.uint8)
+        self._tf_high_indptr, self._tf_high_offsets = np.zeros(1, np.int64), np.zeros(0, np.uint16)
+        self._tf_high = np.zeros(0, _HIGH_DTYPE)
+        self._global, self._stored_norm = np.zeros((0, GLOBAL_DIM), np.float32), np.zeros(0, np.float32)
+        self._inverted = self._idf = self._word_present = self._word_lookup = None
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise RuntimeError("ORB retrieval was closed at the end of its run: it stores and answers nothing more")
 
     def spill_features(self, folder: str | os.PathLike | None, in_ram: int) -> None:
         """Keep only the ``in_ram`` newest keyframes' keypoints and descriptors in RAM (about 38 kB
@@ -284,6 +303,7 @@ class OrbRetrieval:
 
     def add(self, frames: Sequence[Frame], submap_id: int) -> None:
         """Store the keyframes ``frames`` (their ``(H, W, 3)`` uint8 RGB images) of submap ``submap_id``."""
+        self._check_open()
         frame_indices, images = [f.index for f in frames], [f.rgb for f in frames]
         batch = [self._features(index, image) for index, image in zip(frame_indices, images)]
         self._pending.clear()
@@ -579,6 +599,7 @@ class OrbRetrieval:
         a revisit costs one verification instead of five). The kept candidates are sorted by
         distance (ties: query frame, then match frame) and the first ``max_results`` returned.
         """
+        self._check_open()
         frame_indices, images = [f.index for f in frames], [f.rgb for f in frames]
         batch = [self._features(index, image) for index, image in zip(frame_indices, images)]
         # Keep only this batch for the add() that follows, so repeated queries do not accumulate.
@@ -639,6 +660,10 @@ class _FeatureFile:
         self._written = 0
         self._end = 0
         self._unflushed = False
+
+    def close(self) -> None:
+        """Close the file (an anonymous one is removed)."""
+        self._file.close()
 
     def write(self, position: int, keypoints: np.ndarray, descriptors: np.ndarray) -> None:
         """Append the record of ``position``, the next one in order."""

@@ -224,6 +224,20 @@ class SaladRetrieval:
         # The pipeline queries and then adds the same keyframes: keep the last query's
         # descriptors so each image goes through the network once.
         self._last_query: dict[int, np.ndarray] = {}
+        self.closed = False  # see close()
+
+    def close(self) -> None:
+        """Free the stored descriptors and this retrieval's hold on the network at the end of a run
+        (the index alone is 17 kB a keyframe); :meth:`add` and :meth:`query` raise ``RuntimeError``
+        afterwards."""
+        dim = self.index.dim
+        self.closed = True
+        self.index = DescriptorIndex(dim, dtype=torch.float16, device=self.device, initial_capacity=1)
+        self.model, self._last_query = None, {}
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise RuntimeError("SALAD retrieval was closed at the end of its run: it stores and answers nothing more")
 
     def describe(self, images: Sequence[np.ndarray]) -> np.ndarray:
         """``(N, D)`` float32 descriptors of ``(H, W, 3)`` uint8 RGB images."""
@@ -236,6 +250,7 @@ class SaladRetrieval:
 
     def add(self, frames: Sequence[Frame], submap_id: int) -> None:
         """Store the descriptors of the keyframes ``frames`` under ``submap_id``."""
+        self._check_open()
         frame_indices, images = [f.index for f in frames], [f.rgb for f in frames]
         cached = [self._last_query.get(int(i)) for i in frame_indices]
         if all(c is not None for c in cached) and cached:
@@ -256,6 +271,7 @@ class SaladRetrieval:
 
     def query(self, frames: Sequence[Frame], submap_id: int, max_results: int) -> list[LoopCandidate]:
         """Loop candidates for the new keyframes ``frames`` of submap ``submap_id``, best (smallest distance) first."""
+        self._check_open()
         frame_indices, images = [f.index for f in frames], [f.rgb for f in frames]
         descriptors = self.describe(images)
         self._last_query = {int(i): d for i, d in zip(frame_indices, descriptors)}
