@@ -73,3 +73,20 @@ def test_zero_refresh_estimates_for_every_link_and_segments_are_separate() -> No
     assert estimates == [32, 16] and old is not new  # each segment its own frame, from its own keyframes
     _grow(graph, keyframes, 101)
     assert frame.running(100, keyframes) is not new and frame.running(1, keyframes) is old
+
+
+def test_keyframe_submaps_are_read_only_where_the_list_grew() -> None:
+    """The ids read for a link are the keyframes' own, whether kept from before (the run's list grew
+    at its end) or read again (another list, a shorter one)."""
+    frame, graph, _ = _frame(0.1)
+    keyframes: list = []
+    for submap_id in range(5):
+        _grow(graph, keyframes, submap_id, count=3)
+        np.testing.assert_array_equal(frame._keyframe_submaps(keyframes), [k.submap_id for k in keyframes])
+    kept = frame._submap_ids
+    keyframes[0] = SimpleNamespace(submap_id=99)  # the list's old entries are not read again ...
+    assert frame._keyframe_submaps(keyframes)[0] == 0 and frame._submap_ids is kept
+    other = [SimpleNamespace(submap_id=7) for _ in range(4)]  # ... but another list's are
+    np.testing.assert_array_equal(frame._keyframe_submaps(other), [7, 7, 7, 7])
+    np.testing.assert_array_equal(frame._keyframe_submaps(other[:2]), [7, 7])
+    np.testing.assert_array_equal(frame._keyframe_submaps(keyframes), [99] + [k.submap_id for k in keyframes[1:]])

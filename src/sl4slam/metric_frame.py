@@ -68,6 +68,8 @@ class MetricFrame:
         self.upgrade_at_end = upgrade_at_end
         self.complete_links = complete_links
         self._running: dict[int, tuple[int, RunningFrame]] = {}  # segment: (its keyframes then, frame)
+        self._submap_ids = np.zeros(0, np.int64)  # the keyframes' submap ids seen so far (see _keyframe_submaps)
+        self._ids_of: Sequence[StoredKeyframe] | None = None  # ... of this list
 
     # ------------------------------------------------------------------ during the run
     def complete_link(self, alignment: Alignment, old_submap: int, old_view: FrameView, new_view: FrameView,
@@ -175,10 +177,24 @@ class MetricFrame:
         the graph, in time order (``running_picks`` of them give the same members as
         ``running_members(segment_members(world, keyframes)[segment], running_keyframes)``), found
         with array operations on the keyframes' submap ids: this runs for every completed link."""
-        ids = np.fromiter((k.submap_id for k in keyframes), dtype=np.int64, count=len(keyframes))
+        ids = self._keyframe_submaps(keyframes)
         placed = np.isin(ids, np.asarray(self.backend.submap_ids, dtype=np.int64))
         candidates = np.flatnonzero(placed)
         return candidates[self.backend.segments_of(ids[candidates]) == segment]
+
+    def _keyframe_submaps(self, keyframes: Sequence[StoredKeyframe]) -> np.ndarray:
+        """``(n,)`` int64 the submap id of each of ``keyframes``. The run's keyframe list (the store's
+        own) only grows at its end, so the ids read before are kept and only the new keyframes' are
+        read (reading every keyframe's id for every link made a link's cost grow with the map);
+        another list, or a shorter one, is read whole."""
+        known = len(self._submap_ids)
+        if keyframes is not self._ids_of or known > len(keyframes):
+            self._ids_of, known = keyframes, 0
+        if known < len(keyframes):
+            new = np.fromiter((keyframes[i].submap_id for i in range(known, len(keyframes))), dtype=np.int64,
+                              count=len(keyframes) - known)
+            self._submap_ids = np.concatenate([self._submap_ids[:known], new])
+        return self._submap_ids[: len(keyframes)]
 
     def estimate(self, members: Sequence[StoredKeyframe], world: WorldEstimate) -> MetricUpgrade:
         """``sl4slam.upgrade.estimate_metric_upgrade`` of these keyframes' cameras in ``world``."""
