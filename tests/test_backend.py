@@ -500,3 +500,50 @@ def test_a_frozen_graph_reads_the_same_estimates_and_takes_nothing_more(kind):
     with pytest.raises(RuntimeError, match="frozen"):
         backend.loop_chi2(0, 3, np.eye(4), np.eye(backend.graph.dim))
     assert backend.num_submaps == len(odometry) + 2  # the refused submap was not counted
+
+
+def test_a_graph_lets_the_main_thread_recurse_as_deep_as_a_long_run_needs():
+    """GTSAM walks iSAM2's Bayes tree recursively and a keyframe chain's tree is as deep as the
+    chain: building a graph raises the soft stack limit (within the hard one, never lowering it)."""
+    import resource
+
+    from sl4slam.backend.pose_graph import GRAPH_STACK_BYTES, allow_deep_graphs
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_STACK)
+    SL4PoseGraph(BackendConfig())
+    now, _ = resource.getrlimit(resource.RLIMIT_STACK)
+    expected = GRAPH_STACK_BYTES if hard == resource.RLIM_INFINITY else min(GRAPH_STACK_BYTES, hard)
+    assert now == resource.RLIM_INFINITY or now >= max(expected, soft if soft != resource.RLIM_INFINITY else 0)
+    assert allow_deep_graphs(1 << 20) == now  # a smaller limit never lowers it
+
+
+@pytest.mark.slow
+def test_the_joint_marginal_across_a_50000_node_chain_does_not_overflow_the_stack():
+    """With the usual 8 MiB stack, iSAM2's joint marginal of the two ends of a 50,000-node SL(4)
+    chain overflows it (a segmentation fault, as a 41,600-keyframe lap replay ended); the graph's
+    raised limit lets it finish. In a subprocess, started with the usual limit. About 6 minutes."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent('''
+        import resource, gtsam
+        from sl4slam.backend import SL4PoseGraph
+        from sl4slam.config import BackendConfig
+        graph = SL4PoseGraph(BackendConfig())
+        isam = graph._isam
+        noise = gtsam.noiseModel.Isotropic.Sigma(15, 0.1)
+        graph_ = gtsam.NonlinearFactorGraph(); values = gtsam.Values()
+        graph_.add(gtsam.PriorFactorSL4(graph.key(0), gtsam.SL4(), noise)); values.insert(graph.key(0), gtsam.SL4())
+        isam.update(graph_, values)
+        for i in range(1, 50000):
+            graph_ = gtsam.NonlinearFactorGraph(); values = gtsam.Values()
+            graph_.add(gtsam.BetweenFactorSL4(graph.key(i - 1), graph.key(i), gtsam.SL4(), noise))
+            values.insert(graph.key(i), gtsam.SL4())
+            isam.update(graph_, values)
+        isam.jointMarginalCovariance([graph.key(0), graph.key(49999)])
+        print("ok")
+    ''')
+    run = subprocess.run(["bash", "-c", f"ulimit -S -s 8192 && {sys.executable} -c \"$0\"", script],
+                         capture_output=True, text=True, timeout=1800)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr[-2000:]

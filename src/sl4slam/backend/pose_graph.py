@@ -118,6 +118,34 @@ class ClosedSpans:
         return k >= 0 and position <= self.ends[k]
 
 
+GRAPH_STACK_BYTES = 1 << 30
+"""The stack a thread that works on a graph may grow to. GTSAM walks iSAM2's Bayes tree recursively,
+and a keyframe chain's tree is about as deep as the chain: a lap replay of 41,600 keyframe nodes
+overflowed the usual 8 MiB and ended in a segmentation fault. Only the pages used are taken."""
+
+
+def allow_deep_graphs(limit: int = GRAPH_STACK_BYTES) -> int:
+    """Raise the process's soft stack limit to ``limit`` bytes (never above the hard limit, never
+    lower), so that the main thread's stack can grow as deep as GTSAM's recursion into a long
+    run's graph goes (other threads keep the stack they were started with). Returns the soft limit
+    now in force (0 where there are no resource limits)."""
+    try:
+        import resource
+    except ImportError:  # no resource limits on this platform
+        return 0
+    soft, hard = resource.getrlimit(resource.RLIMIT_STACK)
+    if soft == resource.RLIM_INFINITY or soft >= limit:
+        return soft
+    wanted = limit if hard == resource.RLIM_INFINITY else min(limit, hard)
+    if wanted > soft:
+        try:
+            resource.setrlimit(resource.RLIMIT_STACK, (wanted, hard))
+        except (ValueError, OSError):
+            return soft
+        return wanted
+    return soft
+
+
 def gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int = 20) -> gtsam.Values:
     """``values`` moved to the optimum of ``graph`` by batch Gauss-Newton, one step at a time, each
     kept only while it lowers the error (GTSAM's SL(4) chart is first-order, so plain Gauss-Newton
@@ -160,6 +188,7 @@ class PoseGraph(ABC):
     def __init__(self, config: BackendConfig, revisit_priors: bool = False) -> None:
         self.config = config
         self.revisit_priors = revisit_priors
+        allow_deep_graphs()  # GTSAM's recursion into a long run's Bayes tree (GRAPH_STACK_BYTES)
         self._isam = self._new_isam()
         self._frozen: gtsam.Values | None = None  # iSAM2's last estimate, once freeze() dropped iSAM2
         self._prior_noise = gtsam.noiseModel.Isotropic.Sigma(self.dim, config.prior_sigma)
