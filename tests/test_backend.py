@@ -521,7 +521,8 @@ def test_a_graph_lets_the_main_thread_recurse_as_deep_as_a_long_run_needs():
 def test_the_joint_marginal_across_a_50000_node_chain_does_not_overflow_the_stack():
     """With the usual 8 MiB stack, iSAM2's joint marginal of the two ends of a 50,000-node SL(4)
     chain overflows it (a segmentation fault, as a 41,600-keyframe lap replay ended); the graph's
-    raised limit lets it finish. In a subprocess, started with the usual limit. About 6 minutes."""
+    raised limit lets it finish. In a subprocess, started with the usual limit; about 6 minutes on a
+    core alone."""
     import subprocess
     import sys
     import textwrap
