@@ -630,9 +630,10 @@ class PoseGraph(ABC):
         """
         if self._pending_factors.size() or self._pending_values.size():
             self.update()
-        if not self._best_estimate().size():
+        start = self._best_estimate()  # one back-substitution, read once
+        if not start.size():
             return self.estimates()
-        values = self.polished_values(max_iterations)
+        values = self.polished_values(max_iterations, start=start)
         return {node: self._from_gtsam(self._at(values, self.key(node))) for node in self._order}
 
     def polished_values(self, max_iterations: int = 20, start: gtsam.Values | None = None) -> gtsam.Values:
