@@ -232,3 +232,26 @@ def test_the_pose_refinement_lever_runs_through_and_moves_only_later_frames(worl
     assert len(refined.keyframes) == len(plain.keyframes)
     np.testing.assert_allclose(refined.T_world_cam[0], plain.T_world_cam[0], atol=1e-9)
     assert not np.allclose(refined.T_world_cam[1:], plain.T_world_cam[1:], atol=1e-6)
+
+
+def test_progress_counts_loops_once_per_submap_not_per_frame(world: Path, monkeypatch) -> None:
+    # counting the accepted loops walks every edge of the run: per input frame that grew with the map
+    from sl4slam.ledger import RunLedger
+    from sl4slam.progress import Progress
+
+    counted = []
+    walk = RunLedger.num_loops.fget
+    monkeypatch.setattr(RunLedger, "num_loops", property(lambda ledger: counted.append(1) or walk(ledger)))
+    shown: list[int] = []  # the loops the bar shows after each frame, then after each submap
+    by_submap: list[int] = []
+    frame, submap = Progress.frame, Progress.submap
+    monkeypatch.setattr(Progress, "frame", lambda self, done=None, **counts: (shown.append(counts["loops"]),
+                                                                            frame(self, done, **counts))[1])
+    monkeypatch.setattr(Progress, "submap", lambda self, done, **counts: (by_submap.append(counts["loops"]),
+                                                                         submap(self, done, **counts))[1])
+    pipeline = SLAMPipeline.from_config(make_config())
+    result = pipeline.run(open_source(str(world)), progress=False)
+    assert result.stats["loops"] >= 1
+    assert len(shown) == 600 and by_submap[-1] == result.stats["loops"]  # the bar's last count is the run's
+    assert shown == sorted(shown) and set(shown) <= {0, *by_submap}  # each frame shows the last submap's
+    assert len(counted) <= pipeline.num_submaps + 10  # a walk per submap and a few at the end

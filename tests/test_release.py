@@ -62,3 +62,25 @@ def test_release_waits_for_the_input_to_close(world: Path) -> None:
     pipeline.start(open_source(str(world)), progress=False)
     with pytest.raises(RuntimeError, match="input closed"):
         pipeline.release()
+
+
+def test_release_returns_the_freed_memory_to_the_system(world: Path, monkeypatch) -> None:
+    # freed after the graph and retrieval were dropped, not before: the polish then starts from less
+    import sl4slam.pipeline as pipeline_module
+
+    asked = []
+    monkeypatch.setattr(pipeline_module, "return_freed_memory",
+                        lambda: asked.append(pipeline.backend.freeze() and pipeline.retrieval.closed) or True)
+    pipeline = _pipeline("keyframe", 0.0)
+    pipeline.run(open_source(str(world)), progress=False, release=True)
+    assert asked == [True]
+
+
+def test_freed_memory_goes_back_where_the_c_library_is_glibc() -> None:
+    import platform
+
+    from sl4slam.heap import return_freed_memory
+
+    if platform.libc_ver()[0] != "glibc":
+        pytest.skip("malloc_trim is glibc's; elsewhere the freed memory is only reused by the process")
+    assert return_freed_memory() is True

@@ -49,6 +49,7 @@ from .config import SLAMConfig
 from .edges import EdgeReport, is_camera_link
 from .errors import UserError
 from .geometry import normalize_sl4
+from .heap import return_freed_memory
 from .keyframe_store import KeyframeStore
 from .ledger import RunLedger
 from .odometry import measure_odometry
@@ -85,6 +86,7 @@ class _Input:
     reporter: Progress
     pending: list[Frame] = field(default_factory=list)  # keyframes selected for the next submap
     frames_read: int = 0
+    loops: int = 0  # loops accepted when the last submap was done (counting them walks every edge)
 
 
 class SLAMPipeline:
@@ -233,7 +235,8 @@ class SLAMPipeline:
         self.colors = SourceColors(source, self.frontend)
         reporter = Progress(len(source), enabled=progress, every=self.config.output.progress_every, per_submap=True)
         self._input = _Input(source, make_scheduler(self, overlap=self.resolved.overlap, ahead=self.resolved.workers,
-                                                    tau_interval=self.config.retrieval.tau_interval), reporter)
+                                                    tau_interval=self.config.retrieval.tau_interval), reporter,
+                             loops=self.num_loops)
 
     def feed(self, frame: Frame) -> bool:
         """Take the next frame of the source given to :meth:`start`: keyframe selection, and once
@@ -249,7 +252,7 @@ class SLAMPipeline:
             fed.pending = []
         fed.scheduler.poll()
         fed.reporter.frame(fed.frames_read, keyframes=len(self.keyframes) + len(fed.pending),
-                           submaps=self.num_submaps, loops=self.num_loops)
+                           submaps=self.num_submaps, loops=fed.loops)
         return is_keyframe
 
     def flush(self) -> None:
@@ -289,13 +292,16 @@ class SLAMPipeline:
     def release(self) -> None:
         """Free what only a growing map needs, once the input is closed: the retrieval's stored
         descriptors (its ``close``, where it has one) and the graph's incremental solver
-        (``Backend.freeze``), together about 40 kB a keyframe with ORB retrieval. :meth:`result`
-        and :meth:`snapshot` give what they gave before; :meth:`start` refuses afterwards."""
+        (``Backend.freeze``), together about 40 kB a keyframe with ORB retrieval, and returns the
+        freed memory to the system (``sl4slam.heap``), so that the final polish does not add its
+        own to it. :meth:`result` and :meth:`snapshot` give what they gave before; :meth:`start`
+        refuses afterwards."""
         if self._input is not None:
             raise RuntimeError("SLAMPipeline.release needs the input closed first (flush or finish)")
         if self.retrieval is not None and hasattr(self.retrieval, "close"):
             self.retrieval.close()
         self.backend.freeze()
+        return_freed_memory()
         self._released = True
 
     def _started(self) -> _Input:
@@ -634,8 +640,9 @@ class SLAMPipeline:
     def _account(self, work: SubmapInput) -> None:
         self.ledger.submap_done(work.submap_id, work.seconds)
         if self._input is not None:
+            self._input.loops = self.num_loops
             self._input.reporter.submap(self._input.frames_read, keyframes=len(self.keyframes),
-                                        submaps=self.num_submaps, loops=self.num_loops)
+                                        submaps=self.num_submaps, loops=self._input.loops)
         if self.on_submap is not None:
             self.on_submap(self, work.submap_id)
 
