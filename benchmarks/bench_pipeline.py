@@ -54,14 +54,9 @@ def peak_mib() -> float:
 def settled_mib() -> float:
     """Resident memory after a garbage collection and, where glibc allows, returning freed heap
     pages to the system (``malloc_trim``), MiB: what the live objects hold."""
-    import ctypes
-    import gc
+    from sl4slam.heap import return_freed_memory
 
-    gc.collect()
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
+    return_freed_memory()
     return resident_mib()
 
 
