@@ -154,6 +154,7 @@ def main() -> None:
             break
     pipeline.stop_requested = True  # the keyframes still waiting make no last submap
     loop_peak, loop_end = peak_mib(), resident_mib()
+    in_ram = pipeline.keyframe_store.ram_bytes() / len(pipeline.keyframes)  # before the release spills the newest
     t0 = time.perf_counter()
     # once per run, as `sl4slam run` ends (`finish(release=True)`): the input closed, the running state
     # released and its memory returned, the final polish, every keyframe's pose; the peak mark is reset
@@ -163,7 +164,7 @@ def main() -> None:
         pipeline.release()
     released = resident_mib()
     separate_peak = reset_peak()
-    pipeline.result()
+    polish_notes = [note for note in pipeline.result().stats["notes"] if "final polish" in note]
     result_seconds = time.perf_counter() - t0
     finish_peak = peak_mib()
     per_submap = pipeline.ledger.submap_seconds
@@ -185,7 +186,6 @@ def main() -> None:
     loop_backend = [s.get("backend", 0.0) * 1000 for s, n in zip(per_submap, pipeline.ledger.submap_loops) if n]
     stored = sum(k.nbytes for k in pipeline.keyframes) / len(pipeline.keyframes)
     store = pipeline.keyframe_store
-    in_ram = store.ram_bytes() / len(pipeline.keyframes)
     on_disk = (sum(p.stat().st_size for p in store.folder.glob("*.npz")) / store.spilled) if store.spilled else 0.0
     half_trace = rss_trace[len(rss_trace) // 2:]
     growth = (np.polyfit([k for k, _ in half_trace], [m for _, m in half_trace], 1)[0] * 1024 * 1024
@@ -221,11 +221,13 @@ def main() -> None:
         f"The loops found here reach back to the first lap, so their span grows with the map.",
         "",
         f"Once per run, `finish()` ({'' if args.keep_running_state else 'retrieval and iSAM2 released, then '}"
-        f"Gauss-Newton polish of the whole graph, then every keyframe's pose): "
+        f"Gauss-Newton polish of the graph, then every keyframe's pose): "
         f"{result_seconds * 1000:.0f} ms for {len(per_submap)} submaps"
         + (f"; resident memory {loop_end:.0f} MiB at the end of the loop (its peak {loop_peak:.0f} MiB), "
            f"{'' if args.keep_running_state else f'{released:.0f} MiB once released, '}"
-           f"peak during the polish and the poses {finish_peak:.0f} MiB." if separate_peak else "."),
+           f"peak during the polish and the poses {finish_peak:.0f} MiB." if separate_peak else ".")
+        + (f" The polish: {'; '.join(polish_notes)}." if polish_notes else
+           f" The polish took the whole graph at once (within `backend.polish_memory_mib` = {config.backend.polish_memory_mib})."),
         "",
         f"Keyframe selection (runs on every input frame, not per submap): median "
         f"{np.median(keyframe_seconds) * 1000:.1f} ms per frame.",

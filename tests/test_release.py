@@ -84,3 +84,28 @@ def test_freed_memory_goes_back_where_the_c_library_is_glibc() -> None:
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("malloc_trim is glibc's; elsewhere the freed memory is only reused by the process")
     assert return_freed_memory() is True
+
+
+def test_a_spilling_run_spills_every_keyframe_before_the_polish(world: Path) -> None:
+    # a run long enough that its store spills keeps no keyframe's arrays in RAM once released; the
+    # result and the arrays read back are the same as a run that keeps them
+    kept, released = _pipeline("keyframe", 0.0), _pipeline("keyframe", 0.0)
+    for pipeline in (kept, released):
+        pipeline.keyframe_store.in_ram = 4
+    a = kept.run(open_source(str(world)), progress=False)
+    assert 0 < kept.keyframe_store.spilled < len(kept.keyframe_store)  # the newest four stay in RAM
+    b = released.run(open_source(str(world)), progress=False, release=True)
+    store = released.keyframe_store
+    assert store.spilled == len(store) and store.ram_bytes() == sum(
+        k.K.nbytes + k.T_cam_submap.nbytes + k.principal_point.nbytes for k in store.keyframes)
+    np.testing.assert_array_equal(b.T_world_cam, a.T_world_cam)
+    for x, y in zip(kept.keyframe_store.keyframes[-4:], store.keyframes[-4:]):
+        np.testing.assert_array_equal(y.depth, x.depth)
+        np.testing.assert_array_equal(y.mask_bits, x.mask_bits)
+        np.testing.assert_array_equal(y.confidence_rank, x.confidence_rank)
+
+
+def test_a_run_that_never_spilled_keeps_its_keyframes_in_ram(world: Path) -> None:
+    pipeline = _pipeline("keyframe", 0.0)
+    pipeline.run(open_source(str(world)), progress=False, release=True)
+    assert len(pipeline.keyframe_store) < pipeline.keyframe_store.in_ram and pipeline.keyframe_store.spilled == 0

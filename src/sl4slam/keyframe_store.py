@@ -60,6 +60,19 @@ class KeyframeStore:
                 old.spill(self.folder / f"{old.frame_index:06d}.npz", owner=self._temporary)
                 self._spilled += 1
 
+    def spill_all(self) -> int:
+        """Spill every keyframe still in RAM (when the store spills at all, ``in_ram > 0``), e.g.
+        once the run takes no more frames, so that what comes after (the final polish) has that
+        room; the arrays are read back, the same bytes, when the outputs need them. Returns how many
+        keyframes were spilled now."""
+        if self.in_ram <= 0:
+            return 0
+        before = self._spilled
+        for keyframe in self.keyframes[self._spilled:]:
+            keyframe.spill(self.folder / f"{keyframe.frame_index:06d}.npz", owner=self._temporary)
+            self._spilled += 1
+        return self._spilled - before
+
     @property
     def folder(self) -> Path:
         """The folder of the spilled keyframes (made on first use)."""

@@ -142,7 +142,7 @@ class MetricFrame:
         with the upgrade; else ``world`` as it is. Returns the estimate and one summary per segment."""
         if not self.upgrade_at_end:
             return world, []
-        upgraded, summaries = WorldEstimate(dict(world.H_world_submap), dict(world.H_world_keyframe)), []
+        upgraded, summaries = WorldEstimate(dict(world.H_world_submap), dict(world.H_world_keyframe), world.polish_blocks), []
         for segment, members in sorted(self.segment_members(world, keyframes).items()):
             try:
                 upgrade = self.estimate(members, world)

@@ -292,15 +292,18 @@ class SLAMPipeline:
     def release(self) -> None:
         """Free what only a growing map needs, once the input is closed: the retrieval's stored
         descriptors (its ``close``, where it has one) and the graph's incremental solver
-        (``Backend.freeze``), together about 40 kB a keyframe with ORB retrieval, and returns the
-        freed memory to the system (``sl4slam.heap``), so that the final polish does not add its
-        own to it. :meth:`result` and :meth:`snapshot` give what they gave before; :meth:`start`
-        refuses afterwards."""
+        (``Backend.freeze``), together about 40 kB a keyframe with ORB retrieval, and, on a run long
+        enough that the keyframe store spills already, the newest keyframes' arrays (to the store's
+        files, about 0.36 MB a keyframe); then returns the freed memory to the system
+        (``sl4slam.heap``), so that the final polish does not add its own to it. :meth:`result` and
+        :meth:`snapshot` give what they gave before; :meth:`start` refuses afterwards."""
         if self._input is not None:
             raise RuntimeError("SLAMPipeline.release needs the input closed first (flush or finish)")
         if self.retrieval is not None and hasattr(self.retrieval, "close"):
             self.retrieval.close()
         self.backend.freeze()
+        if self.keyframe_store.spilled:
+            self.keyframe_store.spill_all()
         return_freed_memory()
         self._released = True
 

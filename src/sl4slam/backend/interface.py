@@ -66,10 +66,14 @@ class WorldEstimate:
         H_world_keyframe: ``{frame_index: (4, 4)}`` maps the points of each keyframe's own submap
             into the world through that keyframe's node, for graphs with a node per keyframe (empty
             for the submap graph, where every keyframe goes through its submap's node).
+        polish_blocks: for a polished estimate, how many consecutive blocks of the graph the polish
+            took to stay within ``BackendConfig.polish_memory_mib`` (1: the whole graph at once, its
+            optimum).
     """
 
     H_world_submap: dict[int, np.ndarray]
     H_world_keyframe: dict[int, np.ndarray] = field(default_factory=dict)
+    polish_blocks: int = 1
 
 
 class Backend(ABC):

@@ -272,7 +272,7 @@ class KeyframeBackend(Backend):
         H = np.matmul(X[nodes], np.asarray(T)) if nodes else np.zeros((0, 4, 4))
         per_submap = {s: H[i] for i, s in enumerate(first) if s is not None}
         per_keyframe = {f: H[i] for i, f in enumerate(frame_of) if f is not None}
-        return WorldEstimate(per_submap, per_keyframe)
+        return WorldEstimate(per_submap, per_keyframe, self.nodes.polish_block_count if final else 1)
 
     @property
     def num_submaps(self) -> int:

@@ -57,7 +57,7 @@ from __future__ import annotations
 import bisect
 import time
 from abc import ABC, abstractmethod
-from typing import Any
+from typing import Any, Sequence
 
 import gtsam
 import numpy as np
@@ -167,6 +167,83 @@ def gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_it
     return values
 
 
+POLISH_PEAK_PER_FACTOR_BYTE = 3.2
+"""Peak memory of a Gauss-Newton polish over the bytes of its square-root information matrix
+(COLAMD, as GTSAM orders it): 2.4-3.0 measured on the lap replay at 300-1000 submaps, rounded up
+(decision: docs/decisions/polish-memory.md)."""
+
+
+def polish_peak_bytes(factor_keys: Sequence[Sequence[int]], dim: int) -> int:
+    """Estimated peak memory of batch Gauss-Newton on a graph, from its structure alone.
+
+    A symbolic elimination (COLAMD, the ordering GTSAM's optimizers use) gives the size of the
+    square-root information matrix; the peak is :data:`POLISH_PEAK_PER_FACTOR_BYTE` times its bytes.
+
+    Args:
+        factor_keys: the keys of every factor (one or two each; a node held fixed is a variable too,
+            with a unary constraint, which adds no fill).
+        dim: the tangent dimension of every variable (15 for SL(4), 7 for Sim(3)).
+
+    Returns:
+        bytes; 0 for an empty graph.
+    """
+    graph = gtsam.SymbolicFactorGraph()
+    for keys in factor_keys:
+        graph.push_factor(*keys)
+    if not graph.size():
+        return 0
+    tree = graph.eliminateMultifrontal(gtsam.Ordering.ColamdSymbolicFactorGraph(graph))
+    entries, cliques = 0, list(tree.roots())
+    while cliques:  # an explicit walk: a long run's tree is deeper than Python's recursion limit
+        clique = cliques.pop()
+        conditional = clique.conditional()
+        frontals = conditional.nrFrontals()
+        entries += frontals * (len(conditional.keys()) + 1) * dim * dim  # rows x (frontal + separator + rhs) columns
+        cliques.extend(clique[i] for i in range(clique.nrChildren()))
+    return int(POLISH_PEAK_PER_FACTOR_BYTE * 8 * entries)
+
+
+def polish_blocks(newest: np.ndarray, factor_keys: Sequence[Sequence[int]], rank: dict[int, int], num_nodes: int,
+                  dim: int, budget_bytes: int) -> list[tuple[int, int]]:
+    """Split the nodes (in insertion order) into consecutive blocks whose polish fits a memory budget.
+
+    A block ``[a, b)`` is polished with the factors whose newest node lies in it, the older nodes
+    they reach held fixed; each block is the longest whose :func:`polish_peak_bytes` is within
+    ``budget_bytes`` (at least one node), found by bisection.
+
+    Args:
+        newest: ``(F,)`` int the insertion rank of each factor's newest node, ascending.
+        factor_keys: the keys of each factor, in the same order.
+        rank: ``{key: insertion rank}`` of every node.
+        num_nodes: how many nodes the graph has.
+        dim: the tangent dimension of a node.
+        budget_bytes: the memory a block's polish may take; ``<= 0``: no limit.
+
+    Returns:
+        ``[(a, b), ...]`` covering ``0 .. num_nodes``; ``[(0, num_nodes)]`` when the whole graph fits.
+    """
+    def peak(a: int, b: int) -> int:
+        lo, hi = np.searchsorted(newest, [a, b])
+        return polish_peak_bytes(factor_keys[lo:hi], dim)
+
+    dense_entries = (num_nodes * dim) * (num_nodes * dim + 1) // 2  # a bound: the dense factor
+    if budget_bytes <= 0 or POLISH_PEAK_PER_FACTOR_BYTE * 8 * dense_entries <= budget_bytes or \
+            peak(0, num_nodes) <= budget_bytes:
+        return [(0, num_nodes)]
+    blocks, a = [], 0
+    while a < num_nodes:
+        lo, hi = a + 1, num_nodes  # the longest block [a, b) within the budget: lo fits (or must)
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if peak(a, mid) <= budget_bytes:
+                lo = mid
+            else:
+                hi = mid - 1
+        blocks.append((a, lo))
+        a = lo
+    return blocks
+
+
 class PoseGraph(ABC):
     """Incremental (iSAM2) pose graph over nodes numbered by the caller; subclasses fix the group
     (SL(4) or Sim(3)). Nodes form a chain in the order they are added (:meth:`add_node` links a
@@ -214,6 +291,7 @@ class PoseGraph(ABC):
         self._pending_revisits = 0
         self._pending_loop_keys: list[int] = []  # GTSAM keys of the pending loop factors
         self.num_revisit_priors = 0
+        self.polish_block_count = 1  # blocks the last polish took (polished_values)
         self._last_estimate: np.ndarray | None = None  # of the newest node, seeds the next guess
 
         self.num_loops = 0
@@ -255,6 +333,10 @@ class PoseGraph(ABC):
     @abstractmethod
     def _prior_factor(self, key: int, Z: Any, noise: Any) -> Any:
         """GTSAM prior factor."""
+
+    @abstractmethod
+    def _equality_factor(self, key: int, value: Any) -> Any:
+        """GTSAM factor that holds a variable at ``value`` (a hard constraint)."""
 
     def _estimate_one(self, key: int) -> Any:
         """iSAM2's current estimate of one variable (no full back-substitution); after
@@ -638,8 +720,44 @@ class PoseGraph(ABC):
 
     def polished_values(self, max_iterations: int = 20, start: gtsam.Values | None = None) -> gtsam.Values:
         """iSAM2's estimate (or ``start``, when it is that estimate already read) polished by batch
-        Gauss-Newton on :meth:`factor_graph` (see :meth:`final_estimates`), as ``gtsam.Values``."""
-        return gauss_newton(self.factor_graph(), self._best_estimate() if start is None else start, max_iterations)
+        Gauss-Newton on :meth:`factor_graph` (see :meth:`final_estimates`), as ``gtsam.Values``.
+
+        Within ``BackendConfig.polish_memory_mib`` (estimated by :func:`polish_blocks` from the
+        graph's structure) the whole graph is polished at once: its optimum. A graph whose polish
+        would take more (a long run that revisits its places lap after lap, every lap tied to the
+        others) is polished in consecutive blocks of nodes, oldest first, each with the factors
+        whose newest node it holds and the older nodes they reach held at their polished values;
+        :attr:`polish_block_count` says how many it took.
+        """
+        start = self._best_estimate() if start is None else start
+        graph = self.factor_graph()
+        factor_keys = [tuple(graph.at(i).keys()) for i in range(graph.size())]
+        rank = {self.key(node): r for r, node in enumerate(self._order)}
+        newest = np.array([max(rank[k] for k in keys) for keys in factor_keys], dtype=np.int64)
+        order = np.argsort(newest, kind="stable")
+        blocks = polish_blocks(newest[order], [factor_keys[i] for i in order], rank, len(self._order), self.dim,
+                               int(self.config.polish_memory_mib) * 2**20)
+        self.polish_block_count = len(blocks)
+        if len(blocks) == 1:
+            return gauss_newton(graph, start, max_iterations)
+        values = gtsam.Values(start)
+        keys = [self.key(node) for node in self._order]
+        cuts = np.searchsorted(newest[order], [b for _, b in blocks])
+        for (a, b), lo, hi in zip(blocks, [0, *cuts[:-1]], cuts):
+            block = gtsam.NonlinearFactorGraph()
+            block_values = gtsam.Values()
+            for key in keys[a:b]:
+                block_values.insert(key, self._at(values, key))
+            for i in order[lo:hi]:
+                block.add(graph.at(int(i)))
+                for key in factor_keys[i]:
+                    if rank[key] < a and not block_values.exists(key):
+                        block_values.insert(key, self._at(values, key))
+                        block.add(self._equality_factor(key, self._at(values, key)))
+            polished = gauss_newton(block, block_values, max_iterations)
+            for key in keys[a:b]:
+                values.update(key, self._at(polished, key))
+        return values
 
     def isam_values(self) -> gtsam.Values:
         """iSAM2's current estimate as ``gtsam.Values`` (keys :meth:`key`; nodes added since the last

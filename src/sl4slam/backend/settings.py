@@ -91,6 +91,12 @@ class BackendConfig(Section):
     place) reaches iSAM2 as a prior on its newer node, the older held at its estimate; the final
     polish at the end of a run optimizes every loop between its two nodes. Keeps the cost of a loop
     update flat in a map that revisits its places lap after lap (decision: docs/decisions/isam2.md)."""
+    polish_memory_mib: int = setting(2048, advanced=True, check=lambda v: v >= 0, allowed=">= 0 (0: no limit)")
+    """Memory (MiB) the final polish of the graph may take. A graph whose exact polish would take
+    more (estimated from its structure before any work: a long run that revisits its places many
+    times, every visit tied to the others) is polished in consecutive blocks of nodes, oldest
+    first, each exact given the blocks before it; the run's notes say so. 0: always the whole graph
+    at once (decision: docs/decisions/polish-memory.md)."""
 
     def setup(self, resolved: Any) -> Any:
         """The graph of the settled design ``graph``, built by its catalog entry (``sl4slam.registry``).

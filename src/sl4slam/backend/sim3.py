@@ -83,3 +83,6 @@ class Sim3PoseGraph(PoseGraph):
 
     def _prior_factor(self, key: int, Z: gtsam.Similarity3, noise: Any) -> gtsam.PriorFactorSimilarity3:
         return gtsam.PriorFactorSimilarity3(key, Z, noise)
+
+    def _equality_factor(self, key: int, value: gtsam.Similarity3) -> gtsam.NonlinearEqualitySimilarity3:
+        return gtsam.NonlinearEqualitySimilarity3(key, value)

@@ -53,6 +53,9 @@ class SL4PoseGraph(PoseGraph):
     def _prior_factor(self, key: int, Z: gtsam.SL4, noise: Any) -> gtsam.PriorFactorSL4:
         return gtsam.PriorFactorSL4(key, Z, noise)
 
+    def _equality_factor(self, key: int, value: gtsam.SL4) -> gtsam.NonlinearEqualitySL4:
+        return gtsam.NonlinearEqualitySL4(key, value)
+
     def estimate_matrices(self, final: bool = False, nodes: Sequence[int] | None = None) -> np.ndarray:
         """``(N, 4, 4)`` every node's estimate in insertion order (or those of ``nodes``, in that
         order), as GTSAM holds it (det 1): the fast form of :meth:`estimates` (``final``:

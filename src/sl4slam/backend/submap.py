@@ -66,7 +66,7 @@ class SubmapBackend(Backend):
         estimates = self.graph.final_estimates() if final else self.graph.estimates()
         if submaps is not None:
             estimates = {s: H for s, H in estimates.items() if s in submaps}
-        return WorldEstimate(estimates)
+        return WorldEstimate(estimates, polish_blocks=self.graph.polish_block_count if final else 1)
 
     def loop_chi2(self, i: int, j: int, H_i_j: np.ndarray, information: np.ndarray,
                   frames: tuple[int, int] | None = None) -> float:

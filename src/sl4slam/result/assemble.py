@@ -24,7 +24,14 @@ def final_estimate(backend: Backend, ledger: RunLedger) -> WorldEstimate:
         UserError: not even iSAM2's estimate can be computed.
     """
     try:
-        return backend.world_estimate(final=True)
+        world = backend.world_estimate(final=True)
+        if world.polish_blocks > 1:
+            note = (f"the final polish ran in {world.polish_blocks} consecutive blocks of the graph, each exact "
+                    "given the ones before, to stay within --backend-polish-memory-mib; raise it (0: no limit) "
+                    "for the whole graph's optimum")
+            log.warning(note)
+            ledger.notes.append(note)
+        return world
     except (BackendUpdateError, RuntimeError, ValueError) as exc:
         first_line = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
         note = f"the final polish of the graph failed ({first_line}); the map is iSAM2's estimate"
