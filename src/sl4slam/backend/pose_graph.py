@@ -169,8 +169,8 @@ def gauss_newton(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_it
 
 POLISH_PEAK_PER_FACTOR_BYTE = 3.2
 """Peak memory of a Gauss-Newton polish over the bytes of its square-root information matrix
-(COLAMD, as GTSAM orders it): 2.4-3.0 measured on the lap replay at 300-1000 submaps, rounded up
-(decision: docs/decisions/polish-memory.md)."""
+(COLAMD, as GTSAM orders it; every conditional's rows by all its columns): 2.1-3.0 measured on the
+lap replay's graphs of 300-3000 submaps, rounded up (decision: docs/decisions/polish-memory.md)."""
 
 
 def polish_peak_bytes(factor_keys: Sequence[Sequence[int]], dim: int) -> int:
