@@ -76,7 +76,7 @@ def test_a_graph_over_the_budget_is_polished_in_blocks_that_fit():
     order = np.argsort(newest, kind="stable")
     whole = polish_peak_bytes(keys, 15)
     assert whole > 2**20  # the exact polish would not fit
-    blocks = polish_blocks(newest[order], [keys[i] for i in order], rank, graph.num_nodes, 15, 2**20)
+    blocks = polish_blocks(newest[order], [keys[i] for i in order], graph.num_nodes, 15, 2**20)
     assert len(blocks) > 1 and blocks[0][0] == 0 and blocks[-1][1] == graph.num_nodes
     assert all(b0[1] == b1[0] for b0, b1 in zip(blocks, blocks[1:]))
     for a, b in blocks:  # each block within the budget (a single node must go whatever it takes)

@@ -56,9 +56,12 @@ class KeyframeStore:
         self._by_frame[keyframe.frame_index] = keyframe
         if self.in_ram > 0:
             while len(self.keyframes) - self._spilled > self.in_ram:
-                old = self.keyframes[self._spilled]
-                old.spill(self.folder / f"{old.frame_index:06d}.npz", owner=self._temporary)
-                self._spilled += 1
+                self._spill_oldest_in_ram()
+
+    def _spill_oldest_in_ram(self) -> None:
+        keyframe = self.keyframes[self._spilled]
+        keyframe.spill(self.folder / f"{keyframe.frame_index:06d}.npz", owner=self._temporary)
+        self._spilled += 1
 
     def spill_all(self) -> int:
         """Spill every keyframe still in RAM (when the store spills at all, ``in_ram > 0``), e.g.
@@ -68,9 +71,8 @@ class KeyframeStore:
         if self.in_ram <= 0:
             return 0
         before = self._spilled
-        for keyframe in self.keyframes[self._spilled:]:
-            keyframe.spill(self.folder / f"{keyframe.frame_index:06d}.npz", owner=self._temporary)
-            self._spilled += 1
+        while self._spilled < len(self.keyframes):
+            self._spill_oldest_in_ram()
         return self._spilled - before
 
     @property

@@ -203,8 +203,14 @@ def polish_peak_bytes(factor_keys: Sequence[Sequence[int]], dim: int) -> int:
     return int(POLISH_PEAK_PER_FACTOR_BYTE * 8 * entries)
 
 
-def polish_blocks(newest: np.ndarray, factor_keys: Sequence[Sequence[int]], rank: dict[int, int], num_nodes: int,
-                  dim: int, budget_bytes: int) -> list[tuple[int, int]]:
+def dense_polish_bytes(num_nodes: int, dim: int) -> int:
+    """An upper bound on :func:`polish_peak_bytes` of any graph of ``num_nodes`` nodes: its factor
+    dense (every node tied to every other), without a symbolic elimination."""
+    return int(POLISH_PEAK_PER_FACTOR_BYTE * 8 * (num_nodes * dim) * (num_nodes * dim + 1) // 2)
+
+
+def polish_blocks(newest: np.ndarray, factor_keys: Sequence[Sequence[int]], num_nodes: int, dim: int,
+                  budget_bytes: int) -> list[tuple[int, int]]:
     """Split the nodes (in insertion order) into consecutive blocks whose polish fits a memory budget.
 
     A block ``[a, b)`` is polished with the factors whose newest node lies in it, the older nodes
@@ -214,10 +220,9 @@ def polish_blocks(newest: np.ndarray, factor_keys: Sequence[Sequence[int]], rank
     Args:
         newest: ``(F,)`` int the insertion rank of each factor's newest node, ascending.
         factor_keys: the keys of each factor, in the same order.
-        rank: ``{key: insertion rank}`` of every node.
         num_nodes: how many nodes the graph has.
         dim: the tangent dimension of a node.
-        budget_bytes: the memory a block's polish may take; ``<= 0``: no limit.
+        budget_bytes: the memory a block's polish may take (positive).
 
     Returns:
         ``[(a, b), ...]`` covering ``0 .. num_nodes``; ``[(0, num_nodes)]`` when the whole graph fits.
@@ -226,9 +231,7 @@ def polish_blocks(newest: np.ndarray, factor_keys: Sequence[Sequence[int]], rank
         lo, hi = np.searchsorted(newest, [a, b])
         return polish_peak_bytes(factor_keys[lo:hi], dim)
 
-    dense_entries = (num_nodes * dim) * (num_nodes * dim + 1) // 2  # a bound: the dense factor
-    if budget_bytes <= 0 or POLISH_PEAK_PER_FACTOR_BYTE * 8 * dense_entries <= budget_bytes or \
-            peak(0, num_nodes) <= budget_bytes:
+    if peak(0, num_nodes) <= budget_bytes:
         return [(0, num_nodes)]
     blocks, a = [], 0
     while a < num_nodes:
@@ -731,12 +734,15 @@ class PoseGraph(ABC):
         """
         start = self._best_estimate() if start is None else start
         graph = self.factor_graph()
+        budget = int(self.config.polish_memory_mib) * 2**20
+        self.polish_block_count = 1
+        if budget <= 0 or dense_polish_bytes(len(self._order), self.dim) <= budget:  # fits whatever its structure
+            return gauss_newton(graph, start, max_iterations)
         factor_keys = [tuple(graph.at(i).keys()) for i in range(graph.size())]
         rank = {self.key(node): r for r, node in enumerate(self._order)}
         newest = np.array([max(rank[k] for k in keys) for keys in factor_keys], dtype=np.int64)
         order = np.argsort(newest, kind="stable")
-        blocks = polish_blocks(newest[order], [factor_keys[i] for i in order], rank, len(self._order), self.dim,
-                               int(self.config.polish_memory_mib) * 2**20)
+        blocks = polish_blocks(newest[order], [factor_keys[i] for i in order], len(self._order), self.dim, budget)
         self.polish_block_count = len(blocks)
         if len(blocks) == 1:
             return gauss_newton(graph, start, max_iterations)
@@ -751,9 +757,10 @@ class PoseGraph(ABC):
             for i in order[lo:hi]:
                 block.add(graph.at(int(i)))
                 for key in factor_keys[i]:
-                    if rank[key] < a and not block_values.exists(key):
-                        block_values.insert(key, self._at(values, key))
-                        block.add(self._equality_factor(key, self._at(values, key)))
+                    if rank[key] < a and not block_values.exists(key):  # an older node: held where it is
+                        held = self._at(values, key)
+                        block_values.insert(key, held)
+                        block.add(self._equality_factor(key, held))
             polished = gauss_newton(block, block_values, max_iterations)
             for key in keys[a:b]:
                 values.update(key, self._at(polished, key))
