@@ -37,7 +37,8 @@ reason the run summary lists:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar, Sequence
+from functools import partial
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Sequence
 
 import cv2
 import numpy as np
@@ -46,6 +47,9 @@ from .alignment.settings import AlignmentConfig
 from .edges import edge_problem, is_camera_link
 from .section import Section, setting
 from .types import Aligner, Alignment, FrameView
+
+if TYPE_CHECKING:
+    from .alignment.parallel import Pending
 
 
 @dataclass
@@ -259,10 +263,22 @@ class LoopVerifier:
         gate = self.config.min_inlier_ratio
         return min(gate, 0.5 * float(np.median(odometry_ratios))) if len(odometry_ratios) else gate
 
+    def start_alignment(self, evidence: LoopEvidence, seed: int) -> Pending[Alignment]:
+        """The loop's link (:meth:`verify`'s alignment, seed ``seed``) started now, on the link pool of
+        ``alignment.fit_threads`` threads (deferred with one): the pipeline measures it beside the
+        odometry link, which it does not depend on (``sl4slam.alignment.parallel``)."""
+        from .alignment.parallel import start  # a stage's module: not loaded with the settings
+
+        return start(partial(self.aligner.align_frames, evidence.pairs, seed=seed),
+                     int(self.alignment_config.fit_threads), kind="link")
+
     def verify(self, old_submap: int, new_submap: int, evidence: LoopEvidence, odometry_ratios: Sequence[float],
-               seed: int, frames: tuple[int, int] | None = None) -> LoopDecision:
+               seed: int, frames: tuple[int, int] | None = None,
+               alignment: Pending[Alignment] | None = None) -> LoopDecision:
         """The verdict on a loop between ``old_submap`` and ``new_submap`` (which is in the graph);
-        ``frames``: the (loop frame, query keyframe) whose nodes a keyframe graph ties."""
+        ``frames``: the (loop frame, query keyframe) whose nodes a keyframe graph ties; ``alignment``:
+        the loop's link as :meth:`start_alignment` started it with the same evidence and seed (else
+        it is measured here)."""
         checks: dict = {}
         if self.attention and evidence.match_ratio is not None:
             checks["match_ratio"] = evidence.match_ratio
@@ -270,8 +286,9 @@ class LoopVerifier:
                 return LoopDecision(False, f"the frontend's attention says the images do not overlap "
                                            f"(match ratio {evidence.match_ratio:.2f} < {self.config.min_match_ratio})",
                                     checks=checks)
-        try:
-            alignment = self.aligner.align_frames(evidence.pairs, seed=seed)  # one link of them all, as odometry
+        try:  # one link of them all, as odometry
+            alignment = (alignment.result() if alignment is not None
+                         else self.aligner.align_frames(evidence.pairs, seed=seed))
         except ValueError as exc:
             return LoopDecision(False, f"the loop frame's alignment failed: {exc}", checks=checks)
         checks["inlier_ratio"] = alignment.inlier_ratio

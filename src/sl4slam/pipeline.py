@@ -42,6 +42,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from .alignment.parallel import Pending
 from .backend import Backend, BackendUpdateError, SubmapFrames, WorldEstimate
 from .backend.evidence import NoiseScale, edge_information
 from .compose import _BUILD, Stages, build_stages
@@ -52,6 +53,7 @@ from .geometry import normalize_sl4
 from .heap import return_freed_memory
 from .keyframe_store import KeyframeStore
 from .ledger import RunLedger
+from .loops import LoopEvidence
 from .odometry import measure_odometry
 from .progress import Progress, StageTimer
 from .resolve import ResolvedConfig, resolve
@@ -492,13 +494,15 @@ class SLAMPipeline:
         with timer("points"):
             prediction = self.knowledge.apply(work.frames, prediction)
             dense = DenseSubmap.of(work, prediction, self.config.submap)
+        with timer("loops"):
+            loops = self.start_loops(work, dense)
         with timer("alignment"):
             odometry = self.align_odometry(work, dense)
         with timer("backend"):
             added = self.add_to_graph(work, dense, odometry)
         if added:
             with timer("loops"):
-                self.close_loops(work, dense)
+                self.close_loops(work, loops, dense)
             with timer("store"):
                 self.store(work, dense)
             if self.objects is not None:
@@ -551,17 +555,40 @@ class SLAMPipeline:
         reason = odometry if isinstance(odometry, str) else "no shared frame with an earlier submap"
         return self._start_segment(work, reason, relative, frames)
 
-    def close_loops(self, work: SubmapInput, dense: DenseSubmap) -> None:
-        """Verify every loop candidate (``sl4slam.loops``) and add the accepted ones to the graph."""
+    def start_loops(self, work: SubmapInput, dense: DenseSubmap) -> list[tuple[LoopEvidence | Exception, Pending | None]]:
+        """Each loop candidate's evidence and its link, started now (``LoopVerifier.start_alignment``):
+        a loop's link does not depend on the odometry link, so the two are measured at once. A
+        candidate whose evidence cannot be read keeps the error, for :meth:`close_loops` to report."""
+        started = []
+        for k in range(len(work.loops)):
+            try:
+                evidence = dense.loop_evidence(work, k, lambda index: self.keyframe_store.get(index).view())
+            except (KeyboardInterrupt, SystemExit):
+                raise
+            except Exception as exc:  # a loop never ends a run
+                started.append((exc, None))
+                continue
+            started.append((evidence, self.loop_verifier.start_alignment(evidence, self._loop_seed(work, k))))
+        return started
+
+    @staticmethod
+    def _loop_seed(work: SubmapInput, k: int) -> int:
+        return work.submap_id * 1000 + k + 1
+
+    def close_loops(self, work: SubmapInput, started: list[tuple[LoopEvidence | Exception, Pending | None]],
+                    dense: DenseSubmap) -> None:
+        """Verify every loop candidate (``sl4slam.loops``) on its evidence and link as
+        :meth:`start_loops` started them, and add the accepted ones to the graph."""
         odometry_ratios = self.ledger.odometry_ratios()
         added: list[EdgeReport] = []
-        for k, candidate in enumerate(work.loops):
+        for k, (candidate, (evidence, alignment)) in enumerate(zip(work.loops, started)):
             old = self.keyframe_store.get(candidate.match_frame)
             tie = (candidate.match_frame, candidate.query_frame)  # the keyframes whose nodes the loop joins
             try:
-                evidence = dense.loop_evidence(work, k, lambda index: self.keyframe_store.get(index).view())
+                if isinstance(evidence, Exception):
+                    raise evidence
                 decision = self.loop_verifier.verify(old.submap_id, work.submap_id, evidence, odometry_ratios,
-                                                     seed=work.submap_id * 1000 + k + 1, frames=tie)
+                                                     seed=self._loop_seed(work, k), frames=tie, alignment=alignment)
             except (KeyboardInterrupt, SystemExit):
                 raise
             except Exception as exc:  # a loop never ends a run

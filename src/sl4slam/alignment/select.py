@@ -36,6 +36,7 @@ folds decide (as a held-out frame, a flat frame is judged like any other).
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Sequence
 
 import numpy as np
@@ -43,6 +44,7 @@ import numpy as np
 from ..edges import is_camera_link
 from ..types import Alignment, FrameView
 from .common import FrameFitter
+from .parallel import start
 from .ransac import transfer_errors
 from .shared import FrameMeasurements, link_from_shared_frames, mean_camera_link, measure_frames
 
@@ -83,7 +85,7 @@ def choose_link(fit_aligner: FrameFitter, link_aligner: FrameFitter,
     cross-validated choice of the module doc; ``extras["select"]`` records the held-out errors.
     ``fit_aligner`` measures the 15-DOF fit (an ``SL4Aligner``), ``link_aligner`` the
     calibration-and-scale link (a ``CalibrationAligner``)."""
-    fits = measure_frames(fit_aligner, pairs, seed)
+    fits = measure_frames(fit_aligner, pairs, seed, joint=True)  # the joint fit starts beside the frames' own
     links = measure_frames(link_aligner, pairs, seed, same_points=fits)
     link = link_from_shared_frames(link_aligner, pairs, seed, links)
     fitted = link_from_shared_frames(fit_aligner, pairs, seed, fits)
@@ -117,6 +119,16 @@ def _frame_folds(fit_aligner: FrameFitter, pairs: Sequence[tuple[FrameView, Fram
     that does not judge (``judged`` False: it determined nothing beyond the link); measured by the
     camera-constrained fit, it votes with that fit, whose terms the plane leaves free come from the
     frame's cameras."""
+    threads = int(fit_aligner.config.fit_threads)
+    trained = {}  # the folds with two or more training frames: their fits, all started at once
+    for held in frames:
+        train = [k for k in frames if k != held]
+        if len(train) > 1:
+            view_a, view_b = pairs[train[0]]
+            trained[held] = start(partial(fit_aligner.fit,
+                                          np.concatenate([fits.points[fits.frames.index(k)][0] for k in train]),
+                                          np.concatenate([fits.points[fits.frames.index(k)][1] for k in train]),
+                                          view_a, view_b, seed + 100 + held), threads)
     folds = []
     for held in frames:
         X_a, X_b = fits.points[fits.frames.index(held)]
@@ -124,10 +136,7 @@ def _frame_folds(fit_aligner: FrameFitter, pairs: Sequence[tuple[FrameView, Fram
         if len(train) == 1:  # the other frame's own measurements
             fitted = fits.alignments[fits.frames.index(train[0])]
         else:
-            view_a, view_b = pairs[train[0]]
-            fitted = fit_aligner.fit(np.concatenate([fits.points[fits.frames.index(k)][0] for k in train]),
-                                     np.concatenate([fits.points[fits.frames.index(k)][1] for k in train]),
-                                     view_a, view_b, seed + 100 + held)
+            fitted = trained[held].result()
         at = [links.frames.index(k) for k in train]
         H_link = mean_camera_link([links.alignments[i] for i in at], [pairs[k] for k in train],
                                   [links.points[i] for i in at], fit_aligner.config.inlier_threshold,

@@ -43,6 +43,11 @@ class AlignmentConfig(Section):
     final inlier mask is computed on every point."""
     max_refit_points: int = setting(20000, advanced=True, check=lambda v: v >= 0, allowed=">= 0 (0: all)")
     """Inliers used by each least-squares refit (0: all; an evenly strided subset beyond this)."""
+    fit_threads: int = setting(2, advanced=True, flag='--alignment-fit-threads',
+                               check=lambda v: v >= 1, allowed="at least 1")
+    """Threads on which one link's independent 15-DOF fits (each shared frame's, and all frames'
+    together) run at once; 1: one after another. The results do not depend on it
+    (``sl4slam.alignment.parallel``); the time does (decision: docs/decisions/fit-threads.md)."""
     min_inliers: int = setting(50, check=lambda v: v >= 5, allowed="at least 5 (one minimal sample)")
     """Fewer inliers than this makes the 15-DOF fit degenerate: use a constrained model instead."""
     planarity_threshold: float = setting(0.02, advanced=True, check=lambda v: 0 <= v < 1, allowed="in [0, 1)")

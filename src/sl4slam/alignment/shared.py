@@ -22,6 +22,7 @@ confident pixels, unusable cameras).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Sequence
 
 import numpy as np
@@ -29,6 +30,7 @@ import numpy as np
 from ..geometry import matrix_exp, matrix_log
 from ..types import Alignment, FrameView
 from .common import FrameFitter, make_alignment
+from .parallel import Pending, start
 from .ransac import transfer_errors
 
 def tangent_mean(H: Sequence[np.ndarray], reference: np.ndarray, weights: Sequence[float] | None = None) -> np.ndarray:
@@ -72,33 +74,60 @@ class FrameMeasurements:
         frames: positions (in the caller's ``pairs``) of the frames that could be measured.
         alignments: their own measurements; points: their ``(X_a, X_b)`` shared confident points.
         problems: why the other frames could not be measured.
+        joint: the fit on every measured frame's points together, started beside the frames' own
+            fits (``measure_frames(..., joint=True)``; ``sl4slam.alignment.parallel``); None when not
+            asked for, or when a frame whose points were gathered could not be measured.
     """
 
     frames: list[int]
     alignments: list[Alignment]
     points: list[tuple[np.ndarray, np.ndarray]]
     problems: list[str]
+    joint: Pending[Alignment] | None = None
 
 
 def measure_frames(aligner: FrameFitter, pairs: Sequence[tuple[FrameView, FrameView]], seed: int,
-                   same_points: FrameMeasurements | None = None) -> FrameMeasurements:
+                   same_points: FrameMeasurements | None = None, joint: bool = False) -> FrameMeasurements:
     """Every shared frame measured alone by ``aligner`` (frame ``k`` with seed ``seed + k``);
     ``same_points``: another aligner's measurements of the same frames with the same pixel
-    selection, whose points are taken as they are instead of being gathered again."""
+    selection, whose points are taken as they are instead of being gathered again.
+
+    The frames' fits run at once on ``aligner.config.fit_threads`` threads (the same results as one
+    after another: ``sl4slam.alignment.parallel``). With ``joint`` (and a model fitted to points,
+    two or more frames), the fit of every frame's points together that :func:`link_from_shared_frames`
+    makes of them is started beside them (``FrameMeasurements.joint``).
+    """
     measured = FrameMeasurements([], [], [], [])
     known = {} if same_points is None else dict(zip(same_points.frames, same_points.points))
+    threads = int(aligner.config.fit_threads)
+    gathered: list[tuple[np.ndarray, np.ndarray] | ValueError] = []
     for k, (view_a, view_b) in enumerate(pairs):
         try:
-            X_a, X_b = known[k] if k in known else aligner.pairs(view_a, view_b)
-            alignment = aligner.fit(X_a, X_b, view_a, view_b, seed + k)
+            gathered.append(known[k] if k in known else aligner.pairs(view_a, view_b))
+        except ValueError as exc:
+            gathered.append(exc)
+    usable = [k for k, points in enumerate(gathered) if not isinstance(points, ValueError)]
+    together = None
+    if joint and aligner.fits_points and len(usable) > 1:  # the longest fit, so started first
+        first = pairs[usable[0]]
+        together = start(partial(aligner.fit, np.concatenate([gathered[k][0] for k in usable]),
+                                 np.concatenate([gathered[k][1] for k in usable]), first[0], first[1], seed), threads)
+    own = {k: start(partial(aligner.fit, *gathered[k], *pairs[k], seed + k), threads) for k in usable}
+    for k, points in enumerate(gathered):
+        try:
+            if isinstance(points, ValueError):
+                raise points
+            alignment = own[k].result()
         except ValueError as exc:
             measured.problems.append(f"frame {k}: {exc}")
             continue
         measured.frames.append(k)
         measured.alignments.append(alignment)
-        measured.points.append((X_a, X_b))
+        measured.points.append(points)
     if not measured.frames:
         raise ValueError("no shared frame can be aligned (" + "; ".join(measured.problems) + ")")
+    if measured.frames == usable:  # else the joint fit stood on a frame left out
+        measured.joint = together
     return measured
 
 
@@ -118,10 +147,12 @@ def link_from_shared_frames(aligner: FrameFitter, pairs: Sequence[tuple[FrameVie
     """
     if len(pairs) == 1 and measured is None:
         return aligner.align(pairs[0][0], pairs[0][1], seed)
-    measured = measured or measure_frames(aligner, pairs, seed)
+    measured = measured or measure_frames(aligner, pairs, seed, joint=True)
     own, points = measured.alignments, measured.points
     if len(own) == 1:
         link = own[0]
+    elif aligner.fits_points and measured.joint is not None:  # started beside the frames' own fits
+        link = measured.joint.result()
     elif aligner.fits_points:
         first = pairs[measured.frames[0]]
         link = aligner.fit(np.concatenate([p[0] for p in points]), np.concatenate([p[1] for p in points]),
