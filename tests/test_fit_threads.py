@@ -1,7 +1,8 @@
 """A link's independent 15-DOF fits run at once (``alignment.fit_threads``): the same links, bit for
 bit, as one after another, in the shared-frame fits, the cross-validated choice and a whole run;
 a frame that cannot be measured still leaves the joint fit to the frames that can; the deferred
-form of one thread runs nothing it is not asked for; bad input."""
+form of one thread runs nothing it is not asked for. A bad ``fit_threads`` is one of
+``tests/test_bad_settings.py``'s cases, as every setting is."""
 
 from __future__ import annotations
 
@@ -16,7 +17,6 @@ from sl4slam.alignment.aligner import SelectAligner, SL4Aligner
 from sl4slam.alignment.parallel import start
 from sl4slam.alignment.shared import link_from_shared_frames, measure_frames
 from sl4slam.config import AlignmentConfig, SimulatorConfig, SLAMConfig
-from sl4slam.errors import UserError
 from sl4slam.frontend.simulated import SimulatedFrontend
 from sl4slam.io import open_source
 from sl4slam.pipeline import SLAMPipeline
@@ -218,10 +218,3 @@ def test_a_loop_whose_evidence_fails_is_rejected_with_its_error(lap: Path, threa
     assert len(result.keyframes) == len(lap_run(lap, threads).keyframes)
     assert any(e.kind == "odometry" and e.accepted and e.submap_to == failed[0] for e in result.edges)
 
-
-def test_bad_fit_threads_is_one_line() -> None:
-    config = SLAMConfig()
-    config.alignment.fit_threads = 0
-    with pytest.raises(UserError, match=r"--alignment-fit-threads \(config key alignment.fit_threads\) must be at least 1") as info:
-        config.validate()
-    assert "\n" not in str(info.value)
