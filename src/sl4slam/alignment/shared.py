@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -109,17 +109,17 @@ def measure_frames(aligner: FrameFitter, pairs: Sequence[tuple[FrameView, FrameV
     usable = [k for k, points in enumerate(gathered) if not isinstance(points, ValueError)]
     together = None
     if joint and aligner.fits_points and len(usable) > 1:  # the longest fit, so started first
-        first = pairs[usable[0]]
-        together = start(partial(aligner.fit, np.concatenate([gathered[k][0] for k in usable]),
-                                 np.concatenate([gathered[k][1] for k in usable]), first[0], first[1], seed), threads)
+        together = start(_fit_together(aligner, pairs, usable, [gathered[k] for k in usable], seed), threads)
     own = {k: start(partial(aligner.fit, *gathered[k], *pairs[k], seed + k), threads) for k in usable}
     for k, points in enumerate(gathered):
-        try:
-            if isinstance(points, ValueError):
-                raise points
-            alignment = own[k].result()
-        except ValueError as exc:
-            measured.problems.append(f"frame {k}: {exc}")
+        problem = points if isinstance(points, ValueError) else None
+        if problem is None:
+            try:
+                alignment = own[k].result()
+            except ValueError as exc:
+                problem = exc
+        if problem is not None:
+            measured.problems.append(f"frame {k}: {problem}")
             continue
         measured.frames.append(k)
         measured.alignments.append(alignment)
@@ -129,6 +129,15 @@ def measure_frames(aligner: FrameFitter, pairs: Sequence[tuple[FrameView, FrameV
     if measured.frames == usable:  # else the joint fit stood on a frame left out
         measured.joint = together
     return measured
+
+
+def _fit_together(aligner: FrameFitter, pairs: Sequence[tuple[FrameView, FrameView]], frames: list[int],
+                  points: list[tuple[np.ndarray, np.ndarray]], seed: int) -> Callable[[], Alignment]:
+    """The fit of the ``frames``' ``points`` together (the first frame's views give the cameras), not
+    yet run."""
+    first = pairs[frames[0]]
+    return partial(aligner.fit, np.concatenate([p[0] for p in points]), np.concatenate([p[1] for p in points]),
+                   first[0], first[1], seed)
 
 
 def link_from_shared_frames(aligner: FrameFitter, pairs: Sequence[tuple[FrameView, FrameView]], seed: int,
@@ -154,9 +163,7 @@ def link_from_shared_frames(aligner: FrameFitter, pairs: Sequence[tuple[FrameVie
     elif aligner.fits_points and measured.joint is not None:  # started beside the frames' own fits
         link = measured.joint.result()
     elif aligner.fits_points:
-        first = pairs[measured.frames[0]]
-        link = aligner.fit(np.concatenate([p[0] for p in points]), np.concatenate([p[1] for p in points]),
-                           first[0], first[1], seed)
+        link = _fit_together(aligner, pairs, measured.frames, points, seed)()
     else:
         link = mean_camera_link(own, [pairs[k] for k in measured.frames], points, aligner.config.inlier_threshold,
                                 aligner.config.weight_reference_frame)
