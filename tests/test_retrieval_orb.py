@@ -335,6 +335,7 @@ def test_a_rewound_database_with_spilled_features_answers_like_a_fresh_one(tmp_p
     for got, want in zip(rewound._entries(rows), fresh._entries(rows)):
         assert got.tobytes() == want.tobytes()
     assert rewound._global[:18].tobytes() == fresh._global[:18].tobytes()
+    assert rewound._group_sums[:1].tobytes() == fresh._group_sums[:1].tobytes()  # written again with rows 12-15
     np.testing.assert_array_equal(rewound._document_frequency, fresh._document_frequency)
     for position in range(18):
         for got, want in zip(rewound._stored_features(position), fresh._stored_features(position)):
@@ -343,3 +344,94 @@ def test_a_rewound_database_with_spilled_features_answers_like_a_fresh_one(tmp_p
     assert rewound.similarity_rows(queries, rows[::-1]).tobytes() == fresh.similarity_rows(queries, rows[::-1]).tobytes()
     probes = as_frames(list(range(300, 304)), [mild_warp(image) for image in images[:24:6]])
     assert rewound.query(probes, 9, 4) == fresh.query(probes, 9, 4)
+    for retrieval in (rewound, fresh):  # the coarse ranking by groups (forced) reads the rewritten group
+        retrieval.config = RetrievalConfig(orb_features=300, orb_coarse_flat_rows=0, orb_coarse_groups=1)
+    assert rewound.query(probes, 9, 4) == fresh.query(probes, 9, 4)
+
+
+def hashed_rows(count: int, seed: int) -> np.ndarray:
+    """``(count, GLOBAL_DIM)`` float32 rows like the stored hashed ones: non-negative, unit length."""
+    from sl4slam.retrieval.orb import GLOBAL_DIM
+
+    rows = np.random.default_rng(seed).gamma(0.5, size=(count, GLOBAL_DIM)).astype(np.float32)
+    return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+
+
+def database_of_rows(rows: np.ndarray, **settings) -> OrbRetrieval:
+    """A retrieval whose stored hashed rows are ``rows`` (only the coarse ranking reads them)."""
+    retrieval = OrbRetrieval(RetrievalConfig(**settings))
+    for position, row in enumerate(rows):
+        retrieval._append_global_row(position, row)
+    return retrieval
+
+
+def test_group_sums_are_the_sums_of_each_finished_group_of_rows():
+    from sl4slam.retrieval.orb import GROUP_ROWS
+
+    rows = hashed_rows(5 * GROUP_ROWS + 7, seed=0)
+    retrieval = database_of_rows(rows)
+    assert len(retrieval._group_sums) >= 5
+    for group in range(5):
+        expected = rows[group * GROUP_ROWS:(group + 1) * GROUP_ROWS].sum(axis=0, dtype=np.float64).astype(np.float32)
+        assert retrieval._group_sums[group].tobytes() == expected.tobytes()
+    assert not retrieval._group_sums[5:].any()  # the unfinished sixth group has no sum yet
+
+
+def test_coarse_ranking_by_groups_keeping_every_group_is_the_flat_ranking():
+    """With as many groups kept as there are, the grouped ranking scores every row: the same rows."""
+    from sl4slam.retrieval.orb import GROUP_ROWS
+
+    rows = hashed_rows(12 * GROUP_ROWS + 5, seed=1)
+    queries = hashed_rows(17, seed=2)
+    eligible = np.arange(len(rows))
+    flat = database_of_rows(rows, orb_coarse_flat_rows=len(rows)).coarse_rows(queries, eligible)
+    grouped = database_of_rows(rows, orb_coarse_flat_rows=0, orb_coarse_groups=12).coarse_rows(queries, eligible)
+    assert grouped.tobytes() == flat.tobytes()
+    assert np.all(np.diff(flat) > 0)  # ascending, no repeats
+
+
+def test_coarse_ranking_goes_by_groups_only_past_the_flat_rows():
+    """Up to ``orb_coarse_flat_rows`` eligible rows every row is scored; one more and only the rows
+    of each query's best groups (and the unfinished last group) are."""
+    from sl4slam.retrieval.orb import COARSE_CANDIDATES, GROUP_ROWS
+
+    rows = hashed_rows(40 * GROUP_ROWS + 3, seed=3)
+    queries = hashed_rows(4, seed=4)
+    eligible = np.arange(len(rows))
+    flat = database_of_rows(rows, orb_coarse_flat_rows=10**9).coarse_rows(queries, eligible)
+    at_bound = database_of_rows(rows, orb_coarse_flat_rows=len(rows), orb_coarse_groups=1)
+    assert at_bound.coarse_rows(queries, eligible).tobytes() == flat.tobytes()
+    past = database_of_rows(rows, orb_coarse_flat_rows=len(rows) - 1, orb_coarse_groups=1)
+    grouped = past.coarse_rows(queries, eligible)
+    scores = past._group_sums[:40] @ queries.T
+    allowed = set(np.argmax(scores, axis=0).tolist()) | {40}  # each query's best group, and the tail
+    assert set((grouped // GROUP_ROWS).tolist()) <= allowed
+    assert grouped.tobytes() != flat.tobytes()  # the flat ranking's best rows lie in other groups too
+    assert len(grouped) <= len(queries) * COARSE_CANDIDATES
+    not_a_prefix = eligible[1:]  # eligible rows that are not the first stored ones: scored one by one
+    expected = np.unique(not_a_prefix[np.argpartition(-(rows[1:] @ queries.T), COARSE_CANDIDATES - 1,
+                                                      axis=0)[:COARSE_CANDIDATES]])
+    assert past.coarse_rows(queries, not_a_prefix).tobytes() == expected.tobytes()
+
+
+def test_coarse_ranking_by_groups_finds_the_revisit():
+    """Forced through the groups (one kept per query), a revisit of a keyframe in the middle of a
+    database of many groups is found, as with the flat ranking. Each group is a camera panning
+    over one surface (overlapping crops of one texture), as consecutive keyframes of a video are."""
+    from sl4slam.retrieval.orb import GROUP_ROWS
+
+    images = []
+    for group in range(12):
+        surface = random_texture(600 + group, (240, 320 + 8 * GROUP_ROWS, 3))
+        images += [surface[:, 8 * k:8 * k + 320] for k in range(GROUP_ROWS)]
+    target = 5 * GROUP_ROWS + 9
+    probe = as_frames([10_000], [mild_warp(images[target])])
+    found = {}
+    for flat_rows in (10**9, 0):
+        retrieval = OrbRetrieval(RetrievalConfig(orb_features=500, orb_coarse_flat_rows=flat_rows, orb_coarse_groups=1))
+        for submap in range(12):
+            first = submap * GROUP_ROWS
+            retrieval.add(as_frames(list(range(first, first + GROUP_ROWS)), images[first:first + GROUP_ROWS]), submap)
+        found[flat_rows] = retrieval.query(probe, submap_id=20, max_results=1)
+    assert [c.match_frame for c in found[0]] == [target]
+    assert found[0] == found[10**9]

@@ -5,7 +5,11 @@ its ORB keypoints and descriptors and a sparse bag of binary words; a query
 
 1. ranks the stored keyframes of eligible submaps (ids ``<= submap_id - 1 - tau_interval``) by
    tf-idf cosine similarity of their word histograms (sparse products through an inverted
-   file, so ranking stays vectorized as the database grows),
+   file, so ranking stays vectorized as the database grows), after a coarse ranking by their
+   words hashed into a short dense row has picked the few worth scoring; past
+   ``RetrievalConfig.orb_coarse_flat_rows`` keyframes that coarse ranking first picks groups of
+   consecutive keyframes (:meth:`OrbRetrieval.coarse_rows`), so its cost grows 16 times slower
+   than the map,
 2. geometrically verifies the best ``RetrievalConfig.orb_candidates``: one-to-one nearest-neighbour
    Hamming matching with Lowe's ratio test, then a fundamental-matrix RANSAC
    (``cv2.findFundamentalMat``, seeded with ``cv2.setRNGSeed``),
@@ -32,8 +36,8 @@ It is not on SALAD's scale: ``RetrievalConfig.tau_desc`` does not apply, the acc
 
 Memory per stored keyframe (1000 features): descriptors 32 kB uint8, keypoints 8 kB float32 (both
 may be spilled to a file, :meth:`OrbRetrieval.spill_features`), words about 5 kB (one byte per
-descriptor and table, see ``OrbRetrieval._append_tf_row``), the hashed global row 4 kB float32;
-no images are kept.
+descriptor and table, see ``OrbRetrieval._append_tf_row``), the hashed global row 4 kB float32
+(and a 16th of a group's summed row, 256 bytes); no images are kept.
 """
 
 from __future__ import annotations
@@ -126,6 +130,11 @@ def match_descriptors(
 # COARSE_CANDIDATES rows per query are then scored exactly (tf-idf through the sparse rows).
 GLOBAL_DIM = 1024
 COARSE_CANDIDATES = 8
+# Beyond RetrievalConfig.orb_coarse_flat_rows eligible keyframes the coarse ranking has two levels:
+# groups of GROUP_ROWS consecutive stored keyframes (a submap's worth) are ranked by the sum of their
+# hashed rows (their mean similarity to the query), and only the rows of each query's best
+# RetrievalConfig.orb_coarse_groups groups (plus an unfinished last group) are ranked one by one.
+GROUP_ROWS = 16
 
 class OrbRetrieval:
     """Place recognition with ORB features (implements ``sl4slam.types.Retrieval``, name "orb").
@@ -184,6 +193,9 @@ class OrbRetrieval:
         self._idf: np.ndarray | None = None  # cached, see _idf_and_norms
         self._idf_count = 0  # keyframes stored when the cached idf was computed
         self._global = np.zeros((0, GLOBAL_DIM), np.float32)  # hashed tf rows, grown geometrically
+        # row g: the sum of hashed rows g * GROUP_ROWS .. (g + 1) * GROUP_ROWS - 1, written when the
+        # group's last row is (again after a rewind); the groups of the first n rows are n // GROUP_ROWS
+        self._group_sums = np.zeros((0, GLOBAL_DIM), np.float32)
         self.describe_seconds = 0.0  # time spent extracting features (the "descriptor model")
         self._stored_norm = np.zeros(0, np.float32)
         # vocabulary-sized scratch of _dot_rows (allocated at its first call, all False / -1 between calls)
@@ -209,6 +221,7 @@ class OrbRetrieval:
         self._tf_high_indptr, self._tf_high_offsets = np.zeros(1, np.int64), np.zeros(0, np.uint16)
         self._tf_high = np.zeros(0, _HIGH_DTYPE)
         self._global, self._stored_norm = np.zeros((0, GLOBAL_DIM), np.float32), np.zeros(0, np.float32)
+        self._group_sums = np.zeros((0, GLOBAL_DIM), np.float32)
         self._inverted = self._idf = self._word_present = self._word_lookup = None
 
     def _check_open(self) -> None:
@@ -347,6 +360,42 @@ class OrbRetrieval:
     def _append_global_row(self, position: int, row: np.ndarray) -> None:
         self._global = _room(self._global, position + 1, position)
         self._global[position] = row
+        if (position + 1) % GROUP_ROWS == 0:  # a group is complete: its sum for the grouped ranking
+            group = position // GROUP_ROWS
+            self._group_sums = _room(self._group_sums, group + 1, group)
+            self._group_sums[group] = self._global[position + 1 - GROUP_ROWS:position + 1].sum(axis=0, dtype=np.float64)
+
+    def coarse_rows(self, queries: np.ndarray, eligible: np.ndarray) -> np.ndarray:
+        """The stored rows the exact tf-idf scores: each query's ``COARSE_CANDIDATES`` best of
+        ``eligible`` (ascending positions) by hashed-row similarity, ascending, without repeats.
+
+        Up to ``orb_coarse_flat_rows`` eligible rows (or when they are not the first stored ones),
+        every eligible row is scored; beyond, the rows of each query's ``orb_coarse_groups`` best
+        groups of ``GROUP_ROWS`` consecutive keyframes (ranked by the sum of their rows, i.e. their
+        mean similarity) and the rows of an unfinished last group.
+
+        Args:
+            queries: ``(num_queries, GLOBAL_DIM)`` float32 hashed rows of the query keyframes.
+            eligible: ``(n,)`` stored positions the queries may match, ``n > COARSE_CANDIDATES``.
+        """
+        count = len(eligible)
+        if count <= int(self.config.orb_coarse_flat_rows) or eligible[-1] != count - 1:
+            # eligible rows are a prefix while submap ids arrive in order: no copy then
+            stored = self._global[:count] if eligible[-1] == count - 1 else self._global[eligible]
+            rows = eligible
+        else:
+            groups = count // GROUP_ROWS
+            keep = min(int(self.config.orb_coarse_groups), groups)
+            chosen = np.arange(groups)
+            if keep < groups:
+                scores = self._group_sums[:groups] @ queries.T  # (groups, num_queries)
+                chosen = np.unique(np.argpartition(-scores, keep - 1, axis=0)[:keep])
+            rows = np.concatenate([(chosen[:, None] * GROUP_ROWS + np.arange(GROUP_ROWS)).reshape(-1),
+                                   np.arange(groups * GROUP_ROWS, count)])
+            stored = self._global[rows]
+        coarse = stored @ queries.T  # (len(rows), num_queries)
+        best = np.argpartition(-coarse, COARSE_CANDIDATES - 1, axis=0)[:COARSE_CANDIDATES]
+        return rows[np.unique(best)]
 
     def _query_weights(self, query_features: Sequence[OrbFeatures], idf: np.ndarray) -> tuple[scipy.sparse.csr_matrix, np.ndarray]:
         """Queries as ``(num_queries, V)`` CSR rows ``tf_q * idf^2`` (with the raw stored tf this gives
@@ -609,15 +658,8 @@ class OrbRetrieval:
         eligible = np.flatnonzero(self._submap_ids <= int(submap_id) - 1 - int(self.config.tau_interval))
         if len(eligible) == 0:
             return []
-        if len(eligible) > COARSE_CANDIDATES:
-            # coarse: one dense product over the database; fine: exact tf-idf on the best rows
-            queries = np.stack([_global_vector(f) for f in batch])
-            # eligible rows are a prefix while submap ids arrive in order: no copy then
-            prefix = eligible[-1] == len(eligible) - 1
-            stored = self._global[: len(eligible)] if prefix else self._global[eligible]
-            coarse = stored @ queries.T  # (num_eligible, num_queries)
-            best = np.argpartition(-coarse, COARSE_CANDIDATES - 1, axis=0)[:COARSE_CANDIDATES]
-            eligible = eligible[np.unique(best)]
+        if len(eligible) > COARSE_CANDIDATES:  # coarse: hashed rows; fine: exact tf-idf on the best rows
+            eligible = self.coarse_rows(np.stack([_global_vector(f) for f in batch]), eligible)
         scores = self.similarity_rows(batch, eligible)  # (num_candidates, num_queries)
         budget = float(self.config.orb_features)
         flat = np.argsort(-scores, axis=None, kind="stable")[: int(self.config.orb_candidates)]

@@ -51,6 +51,15 @@ class RetrievalConfig(Section):
     """ORB: images whose longer side exceeds this (px) are downscaled to it before extraction, so
     cost and the epipolar threshold do not depend on the input size."""
 
+    orb_coarse_flat_rows: int = setting(4096, advanced=True, check=lambda v: v >= 0, allowed=">= 0 (0: always by groups)")
+    """ORB: up to this many eligible stored keyframes, the coarse ranking scores every one; beyond,
+    it first ranks groups of consecutive keyframes by their mean similarity and scores only the
+    keyframes of each query's ``orb_coarse_groups`` best groups, so the ranking's cost grows 16
+    times slower than the map (decision: docs/decisions/bounded-retrieval.md)."""
+    orb_coarse_groups: int = setting(32, advanced=True, check=lambda v: v >= 1, allowed="at least 1")
+    """ORB: groups of consecutive stored keyframes kept per query keyframe by the grouped coarse
+    ranking (``orb_coarse_flat_rows``)."""
+
     def setup(self, resolved: Any) -> Any:
         """The retrieval of the settled ``kind`` (``None`` for "none"), built by its catalog entry
         (``sl4slam.registry``).
