@@ -108,6 +108,7 @@ def agreement(images: list[np.ndarray], owners: list[str], kept_groups: list[int
     modes = {"flat": config, **{f"{g} groups": replace(config, orb_coarse_flat_rows=0, orb_coarse_groups=g)
                                  for g in kept_groups}}
     counts = {mode: {"loops": 0, "same": 0, "other_sequence": 0, "rows_kept": [], "ms": []} for mode in modes}
+    per_sequence = {name: {mode: 0 for mode in modes} for name in dict.fromkeys(owners)}  # loops of its queries
     submaps = 0
     for submap_id, first in enumerate(range(0, len(images), SUBMAP)):
         indices = list(range(first, min(first + SUBMAP, len(images))))
@@ -125,13 +126,15 @@ def agreement(images: list[np.ndarray], owners: list[str], kept_groups: list[int
             counts[mode]["loops"] += len(candidates)
             counts[mode]["other_sequence"] += sum(owners[q] != owners[m] for q, m in found[mode])
             counts[mode]["same"] += len(found[mode] & found["flat"])
+            for query, _ in found[mode]:
+                per_sequence[owners[query]][mode] += 1
             if len(eligible) > COARSE_CANDIDATES:
                 ranked[mode] = set(retrieval.coarse_rows(queries, eligible).tolist())
                 counts[mode]["rows_kept"].append(len(ranked[mode] & ranked["flat"]) / len(ranked["flat"]))
         retrieval.config = config
         retrieval.add(frames, submap_id)
         submaps += 1
-    return {"submaps": submaps, "stored": len(retrieval), "modes": counts,
+    return {"submaps": submaps, "stored": len(retrieval), "modes": counts, "per_sequence": per_sequence,
             "hashed_rows": retrieval._global[: len(retrieval)].copy()}
 
 
@@ -209,6 +212,11 @@ def main() -> int:
                [["every keyframe" if mode == "flat" else f"by groups, {mode} kept", m["loops"], m["same"],
                  m["other_sequence"], "100 %" if mode == "flat" else kept(mode), f"{statistics.median(m['ms']):.1f}"]
                 for mode, m in modes.items()]),
+        "",
+        "Loops found per sequence (by its query keyframes):",
+        "",
+        *table(["sequence", "every keyframe", *[f"{g} groups kept" for g in kept_groups]],
+               [[name, *[counts[mode] for mode in modes]] for name, counts in found["per_sequence"].items()]),
         "",
         "### Cost of the coarse ranking (17 query keyframes)",
         "",

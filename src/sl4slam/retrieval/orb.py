@@ -379,17 +379,19 @@ class OrbRetrieval:
             eligible: ``(n,)`` stored positions the queries may match, ``n > COARSE_CANDIDATES``.
         """
         count = len(eligible)
-        if count <= int(self.config.orb_coarse_flat_rows) or eligible[-1] != count - 1:
-            # eligible rows are a prefix while submap ids arrive in order: no copy then
-            stored = self._global[:count] if eligible[-1] == count - 1 else self._global[eligible]
-            rows = eligible
+        prefix = eligible[-1] == count - 1  # the first stored rows, as while submap ids arrive in order
+        if not prefix:
+            rows, stored = eligible, self._global[eligible]
+        elif count <= int(self.config.orb_coarse_flat_rows):
+            rows, stored = eligible, self._global[:count]  # a view: no copy
         else:
             groups = count // GROUP_ROWS
             keep = min(int(self.config.orb_coarse_groups), groups)
-            chosen = np.arange(groups)
             if keep < groups:
                 scores = self._group_sums[:groups] @ queries.T  # (groups, num_queries)
                 chosen = np.unique(np.argpartition(-scores, keep - 1, axis=0)[:keep])
+            else:
+                chosen = np.arange(groups)
             rows = np.concatenate([(chosen[:, None] * GROUP_ROWS + np.arange(GROUP_ROWS)).reshape(-1),
                                    np.arange(groups * GROUP_ROWS, count)])
             stored = self._global[rows]
