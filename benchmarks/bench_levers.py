@@ -49,6 +49,8 @@ WORK = OUT / "levers"
 WORLDS = {"synthetic": "synthetic world (600 frames, 320x240, one lap)", "desk": "TUM fr1/desk (613 frames)"}
 WINDOW_OFF = "its distortion common to a window (perspective, shear 0)"
 POSES_OFF = "its per-frame pose errors (camera rotation, translation 0)"
+ROTATION_OFF = "its per-frame rotation errors (camera rotation 0)"
+SHIFT_OFF = "its per-frame camera centre errors (camera translation 0)"
 FOCAL_OFF = "its per-frame focal errors (focal_error 0)"
 WARP_OFF = "its smooth depth warps (depth_warp 0)"
 PIXELS_OFF = "its per-pixel depth errors (depth noise, flying pixels, outlier blobs 0)"
@@ -67,12 +69,15 @@ PROFILES = {
                    f"diagnostic: the hard profile without {WINDOW_OFF}"),
     "vggt-nocam": ("vggt", {"camera_rotation_deg": 0.0, "camera_translation": 0.0},
                    f"diagnostic: the vggt profile without {POSES_OFF}"),
+    "vggt-norot": ("vggt", {"camera_rotation_deg": 0.0}, f"diagnostic: the vggt profile without {ROTATION_OFF}"),
+    "vggt-noshift": ("vggt", {"camera_translation": 0.0}, f"diagnostic: the vggt profile without {SHIFT_OFF}"),
     "vggt-nofocal": ("vggt", {"focal_error": 0.0}, f"diagnostic: the vggt profile without {FOCAL_OFF}"),
     "vggt-nowarp": ("vggt", {"depth_warp": 0.0}, f"diagnostic: the vggt profile without {WARP_OFF}"),
     "vggt-nopixel": ("vggt", {"depth_noise": 0.0, "flying_px": 0.0, "outlier_fraction": 0.0},
                      f"diagnostic: the vggt profile without {PIXELS_OFF}"),
 }
 DIAGNOSTIC = {"vggt-nowin": ("vggt", WINDOW_OFF), "hard-nowin": ("hard", WINDOW_OFF), "vggt-nocam": ("vggt", POSES_OFF),
+              "vggt-norot": ("vggt", ROTATION_OFF), "vggt-noshift": ("vggt", SHIFT_OFF),
               "vggt-nofocal": ("vggt", FOCAL_OFF), "vggt-nowarp": ("vggt", WARP_OFF),
               "vggt-nopixel": ("vggt", PIXELS_OFF)}
 """Each diagnostic profile: the full profile it is compared with, and the term it switches off."""
@@ -106,6 +111,10 @@ VARIANTS = {
                        "submap graph with 2 shared frames (no attention check), every proposal a wrong place"),
     "defaults-corr8000": ({"__defaults__": True, "alignment.max_correspondences": 8000},
                           "the defaults with at most 8000 shared pixels per frame in a link's fits (30000 by default)"),
+    "defaults-overlap3": ({"__defaults__": True, "submap.overlap": 3},
+                          "the defaults with 3 shared frames between submaps (2 by default)"),
+    "defaults-features": ({"__defaults__": True, "submap.feature_poses": 1000},
+                     "the defaults with every frame's camera corrected by its ORB features"),
     "defaults-refine": ({"__defaults__": True, "submap.refine_cameras": 3},
                         "the defaults with every frame's pose refined against the other frames' dense points in its "
                         "submap (3 Gauss-Newton steps; docs/decisions/frame-refinement.md)"),

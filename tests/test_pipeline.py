@@ -234,6 +234,21 @@ def test_the_pose_refinement_lever_runs_through_and_moves_only_later_frames(worl
     assert not np.allclose(refined.T_world_cam[1:], plain.T_world_cam[1:], atol=1e-6)
 
 
+def test_the_feature_pose_lever_runs_through_and_moves_only_later_frames(world: Path) -> None:
+    """``submap.feature_poses`` (off by default) corrects each window's cameras by their ORB
+    features before anything reads them: the run completes with the same keyframes, its poses
+    differ from the plain run's, the first keyframe stays, and the run is deterministic."""
+    plain = run(world, backend="sl4")
+    config = make_config()
+    config.submap.feature_poses = 500
+    corrected = SLAMPipeline.from_config(config).run(open_source(str(world)), progress=False)
+    again = SLAMPipeline.from_config(config).run(open_source(str(world)), progress=False)
+    np.testing.assert_array_equal(corrected.T_world_cam, again.T_world_cam)
+    assert len(corrected.keyframes) == len(plain.keyframes)
+    np.testing.assert_allclose(corrected.T_world_cam[0], plain.T_world_cam[0], atol=1e-9)
+    assert not np.allclose(corrected.T_world_cam[1:], plain.T_world_cam[1:], atol=1e-6)
+
+
 def test_progress_counts_loops_once_per_submap_not_per_frame(world: Path, monkeypatch) -> None:
     # counting the accepted loops walks every edge of the run: per input frame that grew with the map
     from sl4slam.ledger import RunLedger

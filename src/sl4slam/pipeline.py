@@ -62,6 +62,7 @@ from .result.assemble import assemble_result, final_estimate
 from .schedule import SequentialScheduler, make_scheduler
 from .source_knowledge import SourceKnowledge, source_problem
 from .refine import refine_prediction
+from .feature_poses import correct_prediction
 from .submap import StoredKeyframe, confidence_mask
 from .types import Aligner, Alignment, Frame, FrameSource, Frontend, LoopCandidate, Retrieval, SubmapPrediction
 from .window import (Anticipation, DenseSubmap, FrontendOutcome, SharedFrames, SubmapInput, prediction_problem,
@@ -400,6 +401,10 @@ class SLAMPipeline:
             if steps and problem is None:  # a lever, off by default: each frame's pose against the others' points
                 mask = confidence_mask(prediction.confidence, prediction.depth, self.config.submap.tau_conf)
                 prediction = refine_prediction(prediction, mask, steps)
+            features = self.config.submap.feature_poses
+            if features and problem is None:
+                mask = confidence_mask(prediction.confidence, prediction.depth, self.config.submap.tau_conf)
+                prediction = correct_prediction(prediction, mask, features)
             outcome = FrontendOutcome(prediction, problem)
         except UserError as exc:  # a problem of the settings (a cache that does not match, a memory budget)
             outcome = FrontendOutcome(None, str(exc), error=exc)

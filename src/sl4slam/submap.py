@@ -54,6 +54,10 @@ class SubmapConfig(Section):
     """Refine every frame's pose but the first against the other frames' dense points in the
     submap, by this many Gauss-Newton steps (``sl4slam.refine``); 0: the frontend's poses as they
     are (decision: docs/decisions/frame-refinement.md)."""
+    feature_poses: int = setting(0, advanced=True, check=lambda v: v >= 0, allowed=">= 0 (0: off)")
+    """Correct every frame's camera but the first by the ORB features (this many per frame) it
+    shares with the other frames of the submap (``sl4slam.feature_poses``); 0: the frontend's
+    cameras as they are (decision: docs/decisions/feature-poses.md)."""
     keyframes_in_ram: int = setting(1024, advanced=True, check=lambda v: v >= 0, allowed=">= 0 (0: every keyframe)")
     """Newest keyframes whose depth, mask and confidence stay in RAM (about 0.36 MB each at
     518x294); older ones are kept in files of the run's folder (``.keyframe_store``, removed when
