@@ -219,28 +219,15 @@ def test_fallback_links_are_completed_from_the_cameras(world: Path) -> None:
     assert ate[True] < 0.1 * ate[False] and ate[True] < 0.01 * path_extent(result), ate  # 16x here
 
 
-def test_the_pose_refinement_lever_runs_through_and_moves_only_later_frames(world: Path) -> None:
-    """``submap.refine_cameras`` (off by default) refines each window's poses before anything reads
-    them: the run completes, its keyframe poses differ from the unrefined run's, the first keyframe
-    (the first submap's frame) does not move, and the run is deterministic."""
+@pytest.mark.parametrize("setting, value", [("refine_cameras", 2), ("feature_poses", 500)])
+def test_a_per_frame_camera_lever_runs_through_and_moves_only_later_frames(world: Path, setting: str, value: int) -> None:
+    """``submap.refine_cameras`` and ``submap.feature_poses`` (both off by default) correct each
+    window's cameras before anything reads them: the run completes with the same keyframes, its
+    poses differ from the plain run's, the first keyframe (the first submap's frame) does not move,
+    and the run is deterministic."""
     plain = run(world, backend="sl4")
     config = make_config()
-    config.submap.refine_cameras = 2
-    refined = SLAMPipeline.from_config(config).run(open_source(str(world)), progress=False)
-    again = SLAMPipeline.from_config(config).run(open_source(str(world)), progress=False)
-    np.testing.assert_array_equal(refined.T_world_cam, again.T_world_cam)
-    assert len(refined.keyframes) == len(plain.keyframes)
-    np.testing.assert_allclose(refined.T_world_cam[0], plain.T_world_cam[0], atol=1e-9)
-    assert not np.allclose(refined.T_world_cam[1:], plain.T_world_cam[1:], atol=1e-6)
-
-
-def test_the_feature_pose_lever_runs_through_and_moves_only_later_frames(world: Path) -> None:
-    """``submap.feature_poses`` (off by default) corrects each window's cameras by their ORB
-    features before anything reads them: the run completes with the same keyframes, its poses
-    differ from the plain run's, the first keyframe stays, and the run is deterministic."""
-    plain = run(world, backend="sl4")
-    config = make_config()
-    config.submap.feature_poses = 500
+    setattr(config.submap, setting, value)
     corrected = SLAMPipeline.from_config(config).run(open_source(str(world)), progress=False)
     again = SLAMPipeline.from_config(config).run(open_source(str(world)), progress=False)
     np.testing.assert_array_equal(corrected.T_world_cam, again.T_world_cam)
