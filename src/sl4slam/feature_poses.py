@@ -33,6 +33,7 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .types import SubmapPrediction
 
@@ -63,22 +64,13 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation ``(3, 3)`` of the rotation vector ``w`` ``(3,)`` (Rodrigues)."""
-    angle = float(np.linalg.norm(w))
-    if angle < 1e-12:
-        return np.eye(3) + skew(w)
-    X = skew(w / angle)
-    return np.eye(3) + np.sin(angle) * X + (1.0 - np.cos(angle)) * X @ X
+    """Rotation ``(3, 3)`` of the rotation vector ``w`` ``(3,)``."""
+    return Rotation.from_rotvec(w).as_matrix()
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vector ``(3,)`` of ``R`` ``(3, 3)`` (angles below pi)."""
-    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    angle = float(np.arccos(cos))
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if angle < 1e-7:
-        return v / 2.0
-    return v * (angle / (2.0 * np.sin(angle)))
+    """Rotation vector ``(3,)`` of the rotation ``R`` ``(3, 3)``."""
+    return Rotation.from_matrix(R).as_rotvec()
 
 
 def orb_features(colors: np.ndarray, features: int) -> list[tuple[np.ndarray, np.ndarray | None]]:
@@ -234,14 +226,16 @@ def _solve(R_model: np.ndarray, C_model: np.ndarray, pairs: list[PairPose], info
         R, C = _apply(R_model, C_model, x)
         for p, info in (item for item, u in zip(zip(pairs, infos), used) if u):
             r = _residual(R, C, p)
-            J = np.zeros((6, 6 * S))
-            J[:3, 6 * p.j:6 * p.j + 3] = np.eye(3)
-            J[:3, 6 * p.i:6 * p.i + 3] = -(R[p.j] @ R[p.i].T)
-            J[3:, 6 * p.j:6 * p.j + 3] = -skew(R[p.j] @ (C[p.i] - C[p.j]))
-            J[3:, 6 * p.i + 3:6 * p.i + 6] = R[p.j]
-            J[3:, 6 * p.j + 3:6 * p.j + 6] = -R[p.j]
-            A += J.T @ info @ J
-            b -= J.T @ info @ r
+            J_i, J_j = np.zeros((6, 6)), np.zeros((6, 6))  # the residual's derivatives by frame i's and j's (w, c)
+            J_j[:3, :3] = np.eye(3)
+            J_i[:3, :3] = -(R[p.j] @ R[p.i].T)
+            J_j[3:, :3] = -skew(R[p.j] @ (C[p.i] - C[p.j]))
+            J_i[3:, 3:] = R[p.j]
+            J_j[3:, 3:] = -R[p.j]
+            for a, J_a in ((p.i, J_i), (p.j, J_j)):
+                b[6 * a:6 * a + 6] -= J_a.T @ info @ r
+                for c, J_c in ((p.i, J_i), (p.j, J_j)):
+                    A[6 * a:6 * a + 6, 6 * c:6 * c + 6] += J_a.T @ info @ J_c
         step = np.zeros(6 * S)
         step[keep] = np.linalg.solve(A[np.ix_(keep, keep)], b[keep])
         x += step.reshape(S, 6)
