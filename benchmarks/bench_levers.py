@@ -118,6 +118,18 @@ VARIANTS = {
     "defaults-refine": ({"__defaults__": True, "submap.refine_cameras": 3},
                         "the defaults with every frame's pose refined against the other frames' dense points in its "
                         "submap (3 Gauss-Newton steps; docs/decisions/frame-refinement.md)"),
+    "defaults-noagree": ({"__defaults__": True, "backend.window_agreement_factor": 0.0},
+                         "the defaults without links inside each window as stiff as its frames agree (the defaults "
+                         "before 2026-11-30; docs/decisions/window-agreement.md)"),
+    "defaults-agree-x1": ({"__defaults__": True, "backend.window_agreement_factor": 1.0},
+                          "the defaults with every window's links at most 1 times how far its frames disagree"),
+    "defaults-agree-x2": ({"__defaults__": True, "backend.window_agreement_factor": 2.0},
+                          "the defaults with every window's links at most 2 times how far its frames disagree (the "
+                          "defaults since 2026-11-30)"),
+    "defaults-agree-x1-noscatter": ({"__defaults__": True, "backend.window_agreement_factor": 1.0,
+                                     "backend.frame_scatter_factor": 0.0},
+                                    "the defaults with every window's links at most how far its frames disagree, "
+                                    "and not by the disagreement between windows"),
     "defaults-sensor": ({"__defaults__": True, "source.metric_depth": "sensor"},
                         "the defaults with metric scale from the depth sensor"),
 }

@@ -444,6 +444,7 @@ def chain_sigmas(world: Path, monkeypatch, **sim) -> list[tuple[bool, float, flo
     monkeypatch.setattr(KeyframeBackend, "add_submap", spy)
     config = SLAMConfig(frontend="simulated")
     config.retrieval.kind = "none"
+    config.backend.window_agreement_factor = 0.0  # the disagreement between windows alone
     for key, value in sim.items():
         setattr(config.sim, key, value)
     SLAMPipeline.from_config(config).run(open_source(str(world)), progress=False)

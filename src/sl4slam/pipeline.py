@@ -534,7 +534,8 @@ class SLAMPipeline:
         """Add the submap (its node, or its keyframes' nodes) with its odometry edge, or as the start
         of a new map segment; ``False`` when the graph cannot take it at all (the submap is dropped)."""
         submap_id = work.submap_id
-        frames = dense.submap_frames(work)
+        frames = dense.submap_frames(work, agreement=self.config.backend.window_agreement_factor > 0
+                                     and self.backend.design == "keyframe")
         if odometry is None and self.backend.num_submaps == 0:
             self.backend.add_submap(submap_id, None, frames=frames)
             self.backend.update()

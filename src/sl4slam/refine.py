@@ -10,7 +10,11 @@ but the first (whose camera is the submap frame) is then corrected by one joint 
 solve over all residuals (those beyond ``trim`` times their median left out), repeated
 ``iterations`` times.
 
-It rests on the frames' pose errors being the only thing their surfaces disagree by. A per-frame
+:func:`window_disagreement` measures the same disagreement without correcting anything: how far
+one frame's points land from the next frame's surface, which is what the keyframe graph sets the
+stiffness inside a window by (``BackendConfig.window_agreement_factor``).
+
+The refinement rests on the frames' pose errors being the only thing their surfaces disagree by. A per-frame
 depth error (a smooth warp of one frame's depth) is absorbed into that frame's pose instead:
 decision: docs/decisions/frame-refinement.md, which keeps it off (``SubmapConfig.refine_cameras``).
 
@@ -75,6 +79,75 @@ def _pairs(inverses, K, T, valid, grids, normals, frame, other, tol):
     ray = np.stack([u[keep], v[keep], np.ones(int(keep.sum()))], axis=-1) @ np.linalg.inv(K[other]).T
     q = (ray * measured[keep][:, None] - to) @ Ro
     return p[front[keep]], q, n_cam[keep] @ Ro
+
+
+def window_disagreement(depth: np.ndarray, K: np.ndarray, T_cam_submap: np.ndarray, valid: np.ndarray,
+                        stride: int = 8, block: int = 4, tol: float = 0.2) -> float | None:
+    """How well the frames of one window agree about their surfaces, their pixel noise averaged out.
+
+    Each frame's grid points (every ``stride``-th pixel) are carried into the next frame of the
+    window and back; a point's signed relative gap ``z_carried / z_measured - 1`` to that frame's
+    depth (interpolated in inverse depth, exact on a plane) says how far the two frames disagree
+    there. The gaps are averaged over blocks of ``block x block`` grid points, where a per-frame
+    camera error or depth warp (smooth over the image) stays and the depth maps' independent pixel
+    noise averages out. A window that is one consistent reconstruction, however distorted as a
+    whole (a per-submap projective error), reads near zero; per-frame camera errors and depth
+    warps read their size.
+
+    Args:
+        depth: ``(S, H, W)`` depth along each camera's z axis; K: ``(S, 3, 3)``.
+        T_cam_submap: ``(S, 3|4, 4)`` camera-from-submap poses.
+        valid: ``(S, H, W)`` bool, the pixels whose depth counts.
+        stride: pixel step of each frame's grid.
+        block: grid points per side of a block; a block counts with at least half of its points
+            on the other frame's surface.
+        tol: gaps beyond this are occlusions or another surface, not disagreement.
+
+    Returns:
+        The median over the pairs of consecutive frames (both ways) of the median absolute block
+        mean gap (dimensionless); ``None`` with fewer than two frames or no pair with a block.
+    """
+    S, H, W = depth.shape
+    T = np.asarray(T_cam_submap, dtype=np.float64)[:, :3, :4]
+    K = np.asarray(K, dtype=np.float64)
+    rows, cols = np.arange(stride // 2, H, stride), np.arange(stride // 2, W, stride)
+    rows, cols = rows[:len(rows) // block * block], cols[:len(cols) // block * block]
+    if len(rows) == 0 or len(cols) == 0:
+        return None
+    grid = pixel_grid(H, W)[np.ix_(rows, cols)]
+    keep = valid[:, rows][:, :, cols]
+    sampled = depth[:, rows][:, :, cols].astype(np.float64)
+    rays = [grid @ np.linalg.inv(K[s]).T for s in range(S)]
+    submap_points = [(rays[s] * sampled[s][..., None] - T[s, :, 3]) @ T[s, :, :3] for s in range(S)]  # (R, C, 3)
+    gaps = []
+    for a in range(S - 1):
+        for frame, other in ((a, a + 1), (a + 1, a)):
+            X = submap_points[frame] @ T[other, :, :3].T + T[other, :, 3]
+            z = X[..., 2]
+            front = keep[frame] & (z > 1e-9)
+            uvw = X @ K[other].T
+            w = np.where(front, uvw[..., 2], 1.0)
+            u, v = uvw[..., 0] / w, uvw[..., 1] / w
+            inside = front & (u >= 0) & (u < W - 1) & (v >= 0) & (v < H - 1)
+            col = np.where(inside, np.floor(u), 0).astype(np.int64)
+            row = np.where(inside, np.floor(v), 0).astype(np.int64)
+            d, ok = depth[other], valid[other]
+            known = ok[row, col] & ok[row, col + 1] & ok[row + 1, col] & ok[row + 1, col + 1]
+            corners = [np.where(known, d[r, c], 1.0).astype(np.float64)
+                       for r, c in ((row, col), (row, col + 1), (row + 1, col), (row + 1, col + 1))]
+            fx, fy = u - col, v - row  # interpolated in inverse depth: exact on a plane
+            measured = 1.0 / ((1 - fy) * ((1 - fx) / corners[0] + fx / corners[1])
+                              + fy * ((1 - fx) / corners[2] + fx / corners[3]))
+            on = inside & known
+            gap = np.where(on, z / np.where(on, measured, 1.0) - 1.0, 0.0)
+            on &= np.abs(gap) <= tol
+            shape = (len(rows) // block, block, len(cols) // block, block)
+            counts = on.reshape(shape).sum(axis=(1, 3))
+            sums = np.where(on, gap, 0.0).reshape(shape).sum(axis=(1, 3))
+            enough = counts >= block * block / 2
+            if enough.any():
+                gaps.append(float(np.median(np.abs(sums[enough] / counts[enough]))))
+    return float(np.median(gaps)) if gaps else None
 
 
 def refine_frame_poses(depth: np.ndarray, K: np.ndarray, T_cam_submap: np.ndarray, valid: np.ndarray,

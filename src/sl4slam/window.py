@@ -19,6 +19,7 @@ from .backend import SubmapFrames
 from .errors import UserError
 from .geometry import to_4x4
 from .loops import LoopEvidence, grey_for_check
+from .refine import window_disagreement
 from .submap import SubmapConfig, confidence_levels, confidence_mask, submap_points
 from .types import Frame, FrameView, LoopCandidate, SubmapPrediction
 
@@ -166,12 +167,18 @@ class DenseSubmap:
                  for k, slot in enumerate(needed)}
         return cls(prediction, T_cam_submap, mask, confidence_levels(prediction.confidence, prediction.depth), views)
 
-    def submap_frames(self, work: SubmapInput) -> SubmapFrames:
+    def submap_frames(self, work: SubmapInput, agreement: bool = False) -> SubmapFrames:
         """The window's shared frames (when it has any) and new keyframes with their extrinsics, as
-        the graph takes them."""
+        the graph takes them; with ``agreement``, how far those frames disagree about their surfaces
+        (:func:`sl4slam.refine.window_disagreement` over the confident pixels)."""
         slots = list(range(work.first_new)) + list(work.new_slots)
+        disagreement = None
+        if agreement:
+            prediction = self.prediction
+            disagreement = window_disagreement(prediction.depth[slots], prediction.K[slots], self.T_cam_submap[slots],
+                                               self.mask[slots])
         return SubmapFrames(tuple(work.frames[slot].index for slot in slots), self.T_cam_submap[slots],
-                            shared=work.first_new)
+                            shared=work.first_new, disagreement=disagreement)
 
     def loop_evidence(self, work: SubmapInput, k: int, stored: Callable[[int], FrameView]) -> LoopEvidence:
         """What the window says about loop candidate ``k``; ``stored(frame_index)`` is a frame's view

@@ -43,12 +43,17 @@ class SubmapFrames:
             of a distortion of the whole window), not a camera link; the keyframe graph then sets
             the stiffness inside the submap from the run's evidence
             (``BackendConfig.frame_scatter_factor``).
+        disagreement: how far the window's frames disagree about their surfaces
+            (``sl4slam.refine.window_disagreement``, dimensionless); ``None``: not measured. The
+            keyframe graph stiffens the links inside the submap by it
+            (``BackendConfig.window_agreement_factor``).
     """
 
     frame_indices: tuple[int, ...]
     T_cam_submap: np.ndarray
     shared: int
     fitted_link: bool = False
+    disagreement: float | None = None
 
     @property
     def new(self) -> range:

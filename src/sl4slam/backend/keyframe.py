@@ -123,7 +123,8 @@ class KeyframeBackend(Backend):
         T = np.asarray(frames.T_cam_submap, dtype=np.float64)
         if T.shape != (len(frames.frame_indices), 4, 4) or not np.isfinite(T).all():
             raise ValueError(f"submap {submap_id}: T_cam_submap must be finite, shape ({len(frames.frame_indices)}, 4, 4)")
-        return SubmapFrames(tuple(int(i) for i in frames.frame_indices), T, int(frames.shared), bool(frames.fitted_link))
+        return SubmapFrames(tuple(int(i) for i in frames.frame_indices), T, int(frames.shared), bool(frames.fitted_link),
+                            frames.disagreement)
 
     def _new_nodes(self, count: int) -> list[int]:
         nodes = list(range(self._next_node, self._next_node + count))
@@ -131,15 +132,22 @@ class KeyframeBackend(Backend):
         return nodes
 
     def chain_sigma(self, frames: SubmapFrames) -> float:
-        """Sigma of the links between the keyframes of the submap ``frames``: ``frame_sigma``; for a
-        submap joined by a 15-DOF fit (``frames.fitted_link``), ``frame_scatter_factor`` times the
-        median disagreement so far (:func:`relative_rotation_disagreement`) where that is smaller,
-        at least ``min_sigma`` (``BackendConfig.frame_scatter_factor``)."""
+        """Sigma of the links between the keyframes of the submap ``frames``: ``frame_sigma``, or
+        less where the run measured the window to be consistent inside, at least ``min_sigma``:
+
+        - for a submap joined by a 15-DOF fit (``frames.fitted_link``), ``frame_scatter_factor``
+          times the median disagreement between windows so far (:func:`relative_rotation_disagreement`);
+        - for any submap whose frames' agreement was measured (``frames.disagreement``),
+          ``window_agreement_factor`` times it.
+        """
+        sigma = self.config.frame_sigma
         factor = self.config.frame_scatter_factor
-        if factor == 0 or not self._frame_scatters or not frames.fitted_link:
-            return self.config.frame_sigma
-        measured = factor * float(np.median(self._frame_scatters))
-        return float(np.clip(measured, self.config.min_sigma, self.config.frame_sigma))
+        if factor > 0 and self._frame_scatters and frames.fitted_link:
+            sigma = min(sigma, factor * float(np.median(self._frame_scatters)))
+        agreement = self.config.window_agreement_factor
+        if agreement > 0 and frames.disagreement is not None:
+            sigma = min(sigma, agreement * frames.disagreement)
+        return float(np.clip(sigma, self.config.min_sigma, self.config.frame_sigma))
 
     def _chain(self, nodes: list[int], frames: SubmapFrames) -> None:
         """Consecutive keyframes of a submap: their relative pose, isotropic :meth:`chain_sigma`."""

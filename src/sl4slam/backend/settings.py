@@ -37,6 +37,14 @@ class BackendConfig(Section):
     ``frame_sigma``); 0 keeps ``frame_sigma`` everywhere. Such a window is consistent inside, and a
     loop must move it whole, as the submap graph's one node does, not bend it
     (decision: docs/decisions/frame-scatter.md)."""
+    window_agreement_factor: float = setting(2.0, advanced=True,
+                                             check=lambda v: v >= 0, allowed=">= 0 (0: not used)")
+    """Keyframe graph: the links between the keyframes of every submap get at most this many times
+    how far the window's frames disagree about their surfaces (``sl4slam.refine.window_disagreement``:
+    one frame's points on the next frame's surface, their relative depth gaps averaged over blocks
+    so that pixel noise drops out; at least ``min_sigma``); 0 does not measure it. A window whose
+    frames agree is one reconstruction, however distorted as a whole, which a loop must move whole,
+    not bend (decision: docs/decisions/window-agreement.md)."""
     weighting: str = setting("by-link", choices=("by-link", "evidence", "fixed"))
     """Noise of each edge: "evidence" (information from the alignment's own inliers, residuals and
     point spread; see ``sl4slam.backend.evidence``), "fixed" (one isotropic ``sigma`` for every
