@@ -121,6 +121,9 @@ VARIANTS = {
     "defaults-noagree": ({"__defaults__": True, "backend.window_agreement_factor": 0.0},
                          "the defaults without links inside each window as stiff as its frames agree (the defaults "
                          "before 2026-11-30; docs/decisions/window-agreement.md)"),
+    "defaults-noscatter": ({"__defaults__": True, "backend.frame_scatter_factor": 0.0},
+                           "the defaults without stiffening windows behind a 15-DOF link by the disagreement between "
+                           "windows (docs/decisions/frame-scatter.md)"),
     "defaults-agree-x1": ({"__defaults__": True, "backend.window_agreement_factor": 1.0},
                           "the defaults with every window's links at most 1 times how far its frames disagree"),
     "defaults-agree-x2": ({"__defaults__": True, "backend.window_agreement_factor": 2.0},
