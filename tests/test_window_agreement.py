@@ -70,10 +70,10 @@ def test_a_distortion_of_the_whole_window_keeps_it_consistent(world: Path):
     assert measured(frames, **STRONG, depth_noise=0.0, seed=0) < 0.1 * noise
 
 
-def frames_of(n: int, disagreement: float | None, start: int = 0) -> SubmapFrames:
+def frames_of(n: int, disagreement: float | None) -> SubmapFrames:
     T = np.repeat(np.eye(4)[None], n, axis=0)
     T[:, 2, 3] = np.arange(n) * 0.1
-    return SubmapFrames(tuple(range(start, start + n)), T, shared=0, disagreement=disagreement)
+    return SubmapFrames(tuple(range(n)), T, shared=0, disagreement=disagreement)
 
 
 @pytest.mark.parametrize("factor, disagreement, expected", [

@@ -25,6 +25,7 @@ integer coordinates at their centres.
 from __future__ import annotations
 
 import dataclasses
+from typing import Callable
 
 import numpy as np
 
@@ -48,14 +49,17 @@ def camera_points_and_normals(depth: np.ndarray, K: np.ndarray) -> tuple[np.ndar
     return points, normals
 
 
-def _bilinear_depth(inverse: np.ndarray, valid: np.ndarray, row: np.ndarray, col: np.ndarray, fx: np.ndarray,
-                    fy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _bilinear_depth(inverse: np.ndarray | Callable[[np.ndarray, np.ndarray], np.ndarray], valid: np.ndarray,
+                    row: np.ndarray, col: np.ndarray, fx: np.ndarray, fy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Depth at ``(col + fx, row + fy)`` from the four pixels around it, interpolated in the inverse
-    depth ``inverse`` ``(H, W)`` (exact on a plane), and whether all four are valid."""
+    depth (exact on a plane), and whether all four are valid. ``inverse``: the inverse depth ``(H, W)``,
+    or a function giving it at pixels ``(row, col)`` (for a map read at a few points only)."""
+    at = inverse if callable(inverse) else (lambda r, c: inverse[r, c])
     known = valid[row, col] & valid[row, col + 1] & valid[row + 1, col] & valid[row + 1, col + 1]
-    top = inverse[row, col] * (1 - fx) + inverse[row, col + 1] * fx
-    bottom = inverse[row + 1, col] * (1 - fx) + inverse[row + 1, col + 1] * fx
-    return 1.0 / (top * (1 - fy) + bottom * fy), known
+    top = at(row, col) * (1 - fx) + at(row, col + 1) * fx
+    bottom = at(row + 1, col) * (1 - fx) + at(row + 1, col + 1) * fx
+    with np.errstate(divide="ignore", invalid="ignore"):  # pixels with an invalid corner are not known
+        return 1.0 / (top * (1 - fy) + bottom * fy), known
 
 
 def _pairs(inverses, K, T, valid, grids, normals, frame, other, tol):
@@ -131,13 +135,9 @@ def window_disagreement(depth: np.ndarray, K: np.ndarray, T_cam_submap: np.ndarr
             inside = front & (u >= 0) & (u < W - 1) & (v >= 0) & (v < H - 1)
             col = np.where(inside, np.floor(u), 0).astype(np.int64)
             row = np.where(inside, np.floor(v), 0).astype(np.int64)
-            d, ok = depth[other], valid[other]
-            known = ok[row, col] & ok[row, col + 1] & ok[row + 1, col] & ok[row + 1, col + 1]
-            corners = [np.where(known, d[r, c], 1.0).astype(np.float64)
-                       for r, c in ((row, col), (row, col + 1), (row + 1, col), (row + 1, col + 1))]
-            fx, fy = u - col, v - row  # interpolated in inverse depth: exact on a plane
-            measured = 1.0 / ((1 - fy) * ((1 - fx) / corners[0] + fx / corners[1])
-                              + fy * ((1 - fx) / corners[2] + fx / corners[3]))
+            ok = valid[other]
+            inverse = (lambda r, c, d=depth[other], ok=ok: 1.0 / np.where(ok[r, c], d[r, c], 1.0).astype(np.float64))
+            measured, known = _bilinear_depth(inverse, ok, row, col, u - col, v - row)
             on = inside & known
             gap = np.where(on, z / np.where(on, measured, 1.0) - 1.0, 0.0)
             on &= np.abs(gap) <= tol
