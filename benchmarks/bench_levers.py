@@ -133,6 +133,12 @@ VARIANTS = {
                                      "backend.frame_scatter_factor": 0.0},
                                     "the defaults with every window's links at most how far its frames disagree, "
                                     "and not by the disagreement between windows"),
+    "defaults-complete0": ({"__defaults__": True, "upgrade.completion_residual": 0.0},
+                           "the defaults completing every planar link whose completion clearly lowers the next "
+                           "submap's constraint residual, however small it was (the defaults since 2026-11-30)"),
+    "defaults-complete-002": ({"__defaults__": True, "upgrade.completion_residual": 0.002},
+                              "the defaults leaving a planar link as measured below a constraint residual of 0.002 "
+                              "(the defaults before 2026-11-30)"),
     "defaults-sensor": ({"__defaults__": True, "source.metric_depth": "sensor"},
                         "the defaults with metric scale from the depth sensor"),
 }

@@ -7,6 +7,7 @@ import pytest
 
 from sl4slam.completion import bending, complete_camera_link, plane_normal, shared_camera_agreement
 from sl4slam.geometry import normalize_sl4
+from sl4slam.upgrade import UpgradeConfig
 
 K = np.array([[256.0, 0.0, 160.0], [0.0, 256.0, 120.0], [0.0, 0.0, 1.0]])
 PP = np.array([160.0, 120.0])
@@ -87,7 +88,39 @@ def test_bending_keeps_the_shared_camera_and_the_centroid_depth():
 def test_an_exact_link_is_left_alone():
     w = two_submaps(5)
     result = complete_camera_link(w["H_true"], w["centre"], w["X_b"], w["P_b"][1:], PP, np.linalg.inv(w["D_a"]), 256.0)
-    assert not result.applied and result.reason.startswith("already metric")
+    assert not result.applied and result.reason.startswith("no clear improvement")
+    assert np.array_equal(result.H_a_b, w["H_true"])
+    told = complete_camera_link(w["H_true"], w["centre"], w["X_b"], w["P_b"][1:], PP, np.linalg.inv(w["D_a"]), 256.0,
+                                UpgradeConfig(completion_residual=0.002))
+    assert not told.applied and told.reason.startswith("already metric")
+    assert np.array_equal(told.H_a_b, w["H_true"])
+
+
+def test_a_slight_bending_is_completed_only_below_the_residual_it_is_told():
+    w = two_submaps(9)
+    link = normalize_sl4(w["H_true"] @ bending(np.array([0.002, -0.001, 0.0014]), w["centre"], w["X_b"]))
+    kept = complete_camera_link(link, w["centre"], w["X_b"], w["P_b"][1:], PP, np.linalg.inv(w["D_a"]), 256.0,
+                                UpgradeConfig(completion_residual=0.002))
+    assert not kept.applied and kept.reason.startswith("already metric")
+    assert 0.0005 < kept.residual_before < 0.002
+    assert np.array_equal(kept.H_a_b, link)
+    result = complete_camera_link(link, w["centre"], w["X_b"], w["P_b"][1:], PP, np.linalg.inv(w["D_a"]), 256.0)
+    assert result.applied and np.abs(result.H_a_b - w["H_true"]).max() < 1e-8
+
+
+def test_cameras_metric_to_within_their_noise_are_not_completed_without_the_threshold():
+    # an exact link, and b's cameras off by noise the bending cannot explain (skew, principal point)
+    w = two_submaps(9)
+    rng = np.random.default_rng(0)
+    noisy = []
+    for P in w["P_b"][1:]:
+        J = np.eye(3)
+        J[0, 1] = rng.normal() * 1e-4 * 256.0
+        J[:2, 2] += rng.normal(size=2) * 1e-4 * 256.0
+        noisy.append(J @ P)
+    result = complete_camera_link(w["H_true"], w["centre"], w["X_b"], np.array(noisy), PP, np.linalg.inv(w["D_a"]), 256.0,
+                                  UpgradeConfig(completion_residual=0.0))
+    assert not result.applied and result.reason.startswith("no clear improvement")
     assert np.array_equal(result.H_a_b, w["H_true"])
 
 

@@ -179,8 +179,8 @@ def complete_camera_link(
     before = float(np.sqrt(np.mean(start**2)))
     if not np.isfinite(start).all():
         return kept("the link's cameras cannot be decomposed", before)
-    if before < config.metric_residual:
-        return kept(f"already metric (constraint residual {before:.2g} < {config.metric_residual:g})", before)
+    if before < config.completion_residual:
+        return kept(f"already metric (constraint residual {before:.2g} < {config.completion_residual:g})", before)
     try:
         solution = least_squares(residuals, np.zeros(len(basis)), loss=config.loss, f_scale=config.loss_scale,
                                  x_scale=0.01, max_nfev=config.max_iterations)

@@ -152,6 +152,13 @@ class UpgradeConfig(Section):
     offset over the focal length) is already below this are metric to within the upgrade's own
     noise and are left alone (decision: docs/decisions/metric-upgrade.md)."""
 
+    completion_residual: float = setting(0.0, advanced=True, check=lambda v: v >= 0, allowed=">= 0")
+    """A planar link whose next submap's cameras already satisfy the constraints through it to
+    within this is left as measured (0: never on that ground alone). Either way the completion
+    must lower their constraint residual clearly (``max_residual_ratio``) and determine the
+    bending (``max_uncertainty``), which leaves cameras metric to within their noise alone
+    (decision: docs/decisions/planar-link-completion.md)."""
+
     def validate(self) -> None:
         super().validate()
         self._require("running_keyframes", self.running_keyframes >= self.min_keyframes,
