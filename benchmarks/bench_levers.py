@@ -100,7 +100,9 @@ VARIANTS = {
     "select2-noup": ({"alignment.model": "select", "submap.overlap": 2}, "select2 without the metric upgrade"),
     "submap2": ({"backend.graph": "submap", "submap.overlap": 2}, "submap graph with 2 shared frames"),
     "defaults-sim3": ({"__defaults__": True, "backend.kind": "sim3"}, "the current defaults in Sim(3)"),
-    "defaults": ({"__defaults__": True}, "the current defaults"),
+    "defaults": ({"__defaults__": True}, "the library's defaults on the date of its runs (a cached run is not made "
+                                         "again when the defaults change; the variants that pin a setting say which "
+                                         "defaults they are)"),
     "defaults-known-k": ({"__defaults__": True, "source.intrinsics": "auto"}, "the defaults with the sequence's known K"),
     "defaults-lf1": ({"__defaults__": True, "submap.loop_frames": 1},
                      "the defaults with one loop frame per loop (as VGGT-SLAM): nothing held out to judge a loop's fit"),
@@ -522,6 +524,57 @@ def suite_ratios(runs: list[dict], profile: str, variant: str) -> dict[tuple, li
     return ratios
 
 
+GRAPH_DESIGNS = ("baseline", "submap")
+"""The two graph designs a variant is held against under a per-submap distortion (``strong``): VGGT-SLAM 2.0's
+keyframe graph (the baseline) and VGGT-SLAM's submap graph."""
+
+
+def better_graph_ratios(runs: list[dict], profile: str, variant: str) -> dict[tuple, list]:
+    """Per sequence (name, rendered length) of a profile: the per-seed ratios ``variant / better graph`` ATE, the
+    better graph being the lower ATE of :data:`GRAPH_DESIGNS` run on that seed (at least one of them); two ATEs both
+    below 1 micrometre (one submap: every design's error is float rounding) count as equal (ratio 1)."""
+    designs: dict[tuple, float] = {}
+    for r in runs:
+        if r["profile"] == profile and r["variant"] in GRAPH_DESIGNS and r.get("ate") is not None:
+            key = (r["sequence"], r["length"], r["seed"])
+            designs[key] = min(designs.get(key, np.inf), r["ate"])
+    ratios: dict[tuple, list] = {}
+    for r in runs:
+        if r["profile"] != profile or r["variant"] != variant or r.get("ate") is None:
+            continue
+        better = designs.get((r["sequence"], r["length"], r["seed"]))
+        if better is not None:
+            ratio = 1.0 if max(r["ate"], better) < 1e-6 else r["ate"] / better
+            ratios.setdefault((r["sequence"], r["length"]), []).append(ratio)
+    return ratios
+
+
+def _better_graph_table(rows: list[dict], profile: str, keys: list[tuple]) -> list[str]:
+    """The lines of a profile's table of every variant (but the graph designs) against the better graph design,
+    with each half's median, worst and how many sequences are within 1.5x; empty without submap-graph runs."""
+    from harness import table
+
+    if not any(r["variant"] == "submap" for r in rows):
+        return []
+    variants = [v for v in VARIANTS if v not in GRAPH_DESIGNS and any(r["variant"] == v for r in rows)]
+    per_variant = {v: better_graph_ratios(rows, profile, v) for v in variants}
+    body = []
+    for half in ("tune", "validate"):
+        half_keys = [k for k in keys if any(r["sequence"] == k[0] and r["split"] == half for r in rows)]
+        medians = {v: [float(np.median(per_variant[v][k])) for k in half_keys if per_variant[v].get(k)] for v in variants}
+        for key in half_keys:
+            body.append([key[0], half, key[1] or "all",
+                         *[f"{np.median(per_variant[v][key]):.2f} ({len(per_variant[v][key])})" if per_variant[v].get(key)
+                           else "-" for v in variants]])
+        for label, of in (("median", lambda x: f"{np.median(x):.2f}"), ("worst", lambda x: f"{max(x):.2f}"),
+                          ("within 1.5x", lambda x: f"{sum(v <= 1.5 for v in x)}/{len(x)}")):
+            body.append([f"**{half}: {label}**", half, "", *[of(medians[v]) if medians[v] else "-" for v in variants]])
+    return [f"**{profile} profile against the better graph design** (each cell: the median over seeds of the "
+            "per-seed ratio variant / the lower ATE of the baseline's keyframe graph and the submap graph on that seed, "
+            "two ATEs below 1 micrometre counting as equal; in brackets the seeds)", "",
+            *table(["sequence", "half", "frames", *[f"{v} / better graph" for v in variants]], body), ""]
+
+
 def _half_summary(values: list) -> tuple[str, str, str]:
     """Median, worst and wins (ratio < 1) of per-sequence ratios (None: the variant failed there)."""
     numbers = [v for v in values if v is not None]
@@ -578,7 +631,9 @@ def suite_report(out: Path) -> None:
              "keyframes) on the same simulated frames; the baseline column is its median ATE in metres over its seeds (the "
              "seeds column: how many; a variant's cell uses the seeds it ran). Per half: the "
              "median of the per-sequence ratios, the worst (largest; \"failed\" when a run of the variant raised) and "
-             "the wins (ratio < 1) over the sequences. Choose on the tune half only; the validate half is reported.", ""]
+             "the wins (ratio < 1) over the sequences. Choose on the tune half only; the validate half is reported.", "",
+             "Variants: " + "; ".join(f"**{name}**: {text}" for name, (_, text) in VARIANTS.items()
+                                      if any(r["variant"] == name for r in runs)) + ".", ""]
     for profile in PROFILES:
         rows = [r for r in runs if r["profile"] == profile]
         if not rows:
@@ -614,7 +669,7 @@ def suite_report(out: Path) -> None:
         lines += [f"**{profile} profile** ({PROFILES[profile][2]}; seeds {', '.join(map(str, seeds))})", "",
                   *table(["sequence", "half", "frames", "seeds", "baseline ATE m", *[f"{v} / baseline" for v in variants]],
                         body),
-                  ""]
+                  "", *_better_graph_table(rows, profile, keys)]
     failures = [r for r in runs if r.get("error")]
     if failures:
         lines += ["Runs that raised: " + "; ".join(f"{r['sequence']} {r['variant']} seed {r['seed']}: {r['error']}"
