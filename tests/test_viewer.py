@@ -473,6 +473,38 @@ def test_closing_the_viewer_while_its_map_loads_stops_the_loader(tmp_path: Path,
         viewer.close()
 
 
+def test_a_browser_connecting_while_the_map_loads_is_framed_under_the_viewer_lock(tmp_path: Path) -> None:
+    """The map loader adds clouds to the state under the viewer's lock; a browser that connects
+    meanwhile is framed from the state under the same lock (reading it while a cloud is added raised
+    "dictionary changed size during iteration" in viser's callback thread, and the browser kept
+    viser's default camera): while another thread holds the lock the connect callback waits, and once
+    it is released the browser gets the view that frames the map."""
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    import contextlib
+    import threading
+
+    from sl4slam.viewer import view_result
+    from sl4slam.viewer.scene import overview
+
+    write_known_result(tmp_path / "r", count=8, width=32, height=24, submap_size=4)
+    viewer = view_result(tmp_path / "r", ViewerSettings(port=_free_port()), block=False)
+    try:
+        assert viewer.loader.wait(HANG_S) and viewer.loader.complete
+        client = SimpleNamespace(client_id=7, camera=SimpleNamespace(position=None, look_at=None, up_direction=None),
+                                 atomic=contextlib.nullcontext)
+        framed = threading.Thread(target=viewer._view_client, args=(client,))
+        with viewer.lock:
+            framed.start()
+            framed.join(0.2)
+            assert framed.is_alive() and client.camera.position is None and 7 not in viewer._given_views
+        framed.join(HANG_S)
+        assert not framed.is_alive()
+        np.testing.assert_array_equal(client.camera.position, overview(viewer.state)[0])
+        np.testing.assert_array_equal(viewer._given_views[7][0], client.camera.position)
+    finally:
+        viewer.close()
+
+
 def test_view_serves_at_once_and_sigterm_stops_it_while_the_map_loads(tmp_path: Path) -> None:
     """`sl4slam view` with the cloud building held until the viewer closes: the URL answers while
     no cloud is built, and SIGTERM stops the viewer cleanly (exit 0, "viewer stopped", no map)."""

@@ -387,13 +387,15 @@ class MapViewer:
                 client.camera.position, client.camera.look_at, client.camera.up_direction = position, look_at, up
 
     def _view_client(self, client) -> None:
-        """Frame the whole map for a newly connected browser."""
-        view = overview(self.state)
-        if view is None:
-            return
-        with client.atomic():
-            client.camera.position, client.camera.look_at, client.camera.up_direction = view
-        self._given_views[client.client_id] = (np.array(view[0], np.float64), np.array(view[1], np.float64))
+        """Frame the whole map for a newly connected browser. Under the lock: a loader may be adding
+        clouds to the state meanwhile, and :meth:`reframe_unmoved` must see the view given here."""
+        with self.lock:
+            view = overview(self.state)
+            if view is None:
+                return
+            with client.atomic():
+                client.camera.position, client.camera.look_at, client.camera.up_direction = view
+            self._given_views[client.client_id] = (np.array(view[0], np.float64), np.array(view[1], np.float64))
 
     def reframe_unmoved(self) -> None:
         """Give the view that frames the map (:func:`~sl4slam.viewer.scene.overview`) to every open
