@@ -200,6 +200,12 @@ def _measured(run, profile: str, variant: str, seed: int) -> dict:
             "date": str(datetime.date.today())}
 
 
+def variant_legend(runs: list[dict]) -> str:
+    """One line naming each variant that has runs in ``runs``, with what it is, in catalogue order."""
+    shown = {r["variant"] for r in runs}
+    return "Variants: " + "; ".join(f"**{name}**: {text}" for name, (_, text) in VARIANTS.items() if name in shown) + "."
+
+
 def load_runs() -> list[dict]:
     path = WORK / "runs.jsonl"
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
@@ -265,9 +271,7 @@ def report(out: Path) -> None:
     lines += targets(runs)
     lines += diagnostics(runs)
     lines += cost_lines()
-    shown = {r["variant"] for r in runs}
-    lines += ["Variants: " + "; ".join(f"**{name}**: {text}" for name, (_, text) in VARIANTS.items() if name in shown)
-              + ".", "",
+    lines += [variant_legend(runs), "",
               "What each gain rests on in the simulator (`sl4slam.frontend.simulated`, `SimConfig`):", "",
               "- **select** (the default link): the simulator draws each frame's depth warp and camera error on "
               "its own (`depth_warp`, `camera_rotation`, ..., independent between frames of a window), while the "
@@ -632,8 +636,7 @@ def suite_report(out: Path) -> None:
              "seeds column: how many; a variant's cell uses the seeds it ran). Per half: the "
              "median of the per-sequence ratios, the worst (largest; \"failed\" when a run of the variant raised) and "
              "the wins (ratio < 1) over the sequences. Choose on the tune half only; the validate half is reported.", "",
-             "Variants: " + "; ".join(f"**{name}**: {text}" for name, (_, text) in VARIANTS.items()
-                                      if any(r["variant"] == name for r in runs)) + ".", ""]
+             variant_legend(runs), ""]
     for profile in PROFILES:
         rows = [r for r in runs if r["profile"] == profile]
         if not rows:
