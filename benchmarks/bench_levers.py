@@ -128,19 +128,27 @@ VARIANTS = {
                            "windows (docs/decisions/frame-scatter.md)"),
     "defaults-agree-x1": ({"__defaults__": True, "backend.window_agreement_factor": 1.0},
                           "the defaults with every window's links at most 1 times how far its frames disagree"),
-    "defaults-agree-x2": ({"__defaults__": True, "backend.window_agreement_factor": 2.0},
+    "defaults-agree-x2": ({"__defaults__": True, "backend.window_agreement_factor": 2.0,
+                           "upgrade.completion_residual": 0.002, "submap.centre_smoothing": False},
                           "the defaults with every window's links at most 2 times how far its frames disagree (the "
-                          "defaults since 2026-11-30)"),
+                          "defaults of 2026-11-30 before planar links were completed below a residual of 0.002 and "
+                          "before centre smoothing)"),
     "defaults-agree-x1-noscatter": ({"__defaults__": True, "backend.window_agreement_factor": 1.0,
                                      "backend.frame_scatter_factor": 0.0},
                                     "the defaults with every window's links at most how far its frames disagree, "
                                     "and not by the disagreement between windows"),
-    "defaults-complete0": ({"__defaults__": True, "upgrade.completion_residual": 0.0},
+    "defaults-complete0": ({"__defaults__": True, "upgrade.completion_residual": 0.0, "submap.centre_smoothing": False},
                            "the defaults completing every planar link whose completion clearly lowers the next "
-                           "submap's constraint residual, however small it was (the defaults since 2026-11-30)"),
-    "defaults-complete-002": ({"__defaults__": True, "upgrade.completion_residual": 0.002},
+                           "submap's constraint residual, however small it was, without centre smoothing (the "
+                           "defaults of 2026-11-30 until centre smoothing)"),
+    "defaults-complete-002": ({"__defaults__": True, "upgrade.completion_residual": 0.002,
+                               "submap.centre_smoothing": False},
                               "the defaults leaving a planar link as measured below a constraint residual of 0.002 "
                               "(the defaults before 2026-11-30)"),
+    "defaults-smooth": ({"__defaults__": True, "upgrade.completion_residual": 0.0, "submap.centre_smoothing": True},
+                        "the defaults of 2026-11-30 with each window's camera centres smoothed as far as the centre "
+                        "noise measured on the shared frames allows (the defaults since 2026-11-30, "
+                        "docs/decisions/centre-smoothing.md)"),
     "defaults-sensor": ({"__defaults__": True, "source.metric_depth": "sensor"},
                         "the defaults with metric scale from the depth sensor"),
 }

@@ -62,6 +62,7 @@ from .result.assemble import assemble_result, final_estimate
 from .schedule import SequentialScheduler, make_scheduler
 from .source_knowledge import SourceKnowledge, source_problem
 from .refine import refine_prediction
+from .centres import CentreSmoother, link_kind
 from .feature_poses import correct_prediction
 from .submap import StoredKeyframe, confidence_mask
 from .types import Aligner, Alignment, Frame, FrameSource, Frontend, LoopCandidate, Retrieval, SubmapPrediction
@@ -137,6 +138,7 @@ class SLAMPipeline:
                                           else None, self.config.submap.keyframes_in_ram)
         self.ledger = RunLedger()
         self.shared = SharedFrames()
+        self.centres = CentreSmoother(self.config.submap.centre_smoothing, self.config.submap.overlap)
         self.stop_requested = False
         self.knowledge = SourceKnowledge(self.resolved, self.frontend)  # start() makes the source's own
         self.colors: SourceColors | None = None  # the keyframes' colours, re-read from the source
@@ -498,6 +500,7 @@ class SLAMPipeline:
         timer = StageTimer()
         with timer("points"):
             prediction = self.knowledge.apply(work.frames, prediction)
+            prediction, centres = self.centres.smooth(work.frames, work.first_new, work.last_slot, prediction)
             dense = DenseSubmap.of(work, prediction, self.config.submap)
         with timer("loops"):
             loops = self.start_loops(work, dense)
@@ -506,6 +509,7 @@ class SLAMPipeline:
         with timer("backend"):
             added = self.add_to_graph(work, dense, odometry)
         if added:
+            self.centres.commit(centres, link_kind(odometry))
             with timer("loops"):
                 self.close_loops(work, loops, dense)
             with timer("store"):

@@ -58,6 +58,11 @@ class SubmapConfig(Section):
     """Correct every frame's camera but the first by the ORB features (this many per frame) it
     shares with the other frames of the submap (``sl4slam.feature_poses``); 0: the frontend's
     cameras as they are (decision: docs/decisions/feature-poses.md)."""
+    centre_smoothing: bool = setting(True, advanced=True)
+    """Smooth each window's camera centres along the camera's path, as far as the centre noise the
+    run measures on its shared frames allows (``sl4slam.centres``); needs ``overlap`` >= 2 (one
+    shared frame measures no noise). Rotations, depth and intrinsics are kept (decision:
+    docs/decisions/centre-smoothing.md)."""
     keyframes_in_ram: int = setting(1024, advanced=True, check=lambda v: v >= 0, allowed=">= 0 (0: every keyframe)")
     """Newest keyframes whose depth, mask and confidence stay in RAM (about 0.36 MB each at
     518x294); older ones are kept in files of the run's folder (``.keyframe_store``, removed when
