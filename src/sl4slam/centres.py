@@ -275,7 +275,9 @@ class CentreSmoother:
     def commit(self, window: SmoothedWindow | None, link: str) -> None:
         """Keep what a window the graph took measured and hands on. ``link``: how the graph took it,
         ``"camera"`` (a link read from the cameras), ``"fit"`` (a 15-DOF fit: the windows are
-        distorted) or ``"none"`` (a first window, or a new map segment: nothing learnt)."""
+        distorted) or ``"none"`` (no link measured, or a fallback that decided nothing: the window's
+        replicates count only while the last link that decided was a camera link);
+        :func:`link_kind` tells them apart."""
         if window is None:
             return
         if link == "camera" or (link == "none" and self.camera_linked):  # windows not distorted as far as seen
