@@ -24,7 +24,8 @@ class SourceConfig(Section):
     ``fx = .. fy = .. cx = .. cy = ..``, or a COLMAP cameras.txt), "auto" (the source's own: TUM
     RGB-D and 7-Scenes), or "" (none: the model's guess, the paper's setting). Each frame's points
     are then rebuilt along the known camera's rays from the model's depth, the links between
-    submaps carry no calibration term, and the metric upgrade is skipped (``sl4slam.intrinsics``)."""
+    submaps carry no calibration term, and the metric upgrade is skipped (``sl4slam.intrinsics``), so
+    a window the model distorted projectively keeps its distortion (BENCHMARKS.md)."""
     intrinsics_to_model: bool = setting(True, flag='--intrinsics-to-model')
     """Also give the known intrinsics to a model that takes a calibration as input (Pi3X, Depth
     Anything 3); off: the points are rebuilt along the known rays only (to tell the two effects apart)."""
