@@ -50,6 +50,18 @@ def test_transfer_jacobian_matches_finite_differences() -> None:
         np.testing.assert_allclose(J[:, :, m], numeric, atol=1e-4)
 
 
+def test_information_sums_every_residual_component() -> None:
+    rng = np.random.default_rng(4)
+    H = near_identity_sl4(rng)
+    X_b = rng.uniform([-1, -1, 1], [1, 1, 3], size=(300, 3))
+    config = BackendConfig(effective_points=1e9, min_sigma=1e-9, max_sigma=1e9)
+    J = transfer_jacobians(H, X_b, GENERATORS)
+    rms = 0.004
+    expected = sum(J[k].T @ J[k] for k in range(len(X_b))) / (rms**2 / 3.0)
+    information = edge_information(alignment_from(H, X_b, rms=rms), GENERATORS, config)
+    np.testing.assert_allclose(information, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+
+
 def test_weight_grows_with_evidence() -> None:
     rng = np.random.default_rng(1)
     H = near_identity_sl4(rng)

@@ -121,3 +121,20 @@ def test_the_pipeline_stiffens_consistent_windows_only(world: Path, monkeypatch)
     assert len(vggt) >= 3 and min(vggt) > 4 * max(strong), (vggt, strong)
     off = chain_sigmas(world, monkeypatch, 0.0, **STRONG, seed=2)
     assert off[0] == frame_sigma and strong[0] < 0.2 * frame_sigma, (off, strong)  # the first submap has no fitted link
+
+
+def test_the_flat_depth_reader_reads_what_the_two_dimensional_one_does():
+    from sl4slam.refine import _bilinear_depth, _bilinear_depth_flat
+
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(0.5, 4.0, size=(30, 40)).astype(np.float32)
+    valid = rng.random((30, 40)) > 0.2
+    depth[~valid & (rng.random((30, 40)) > 0.5)] = 0.0  # some invalid pixels hold no depth at all
+    u, v = rng.uniform(0, 38.999, size=500), rng.uniform(0, 28.999, size=500)
+    col, row = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    inverse = 1.0 / np.where(valid, depth, 1.0).astype(np.float64)
+    expected, expected_known = _bilinear_depth(inverse, valid, row, col, u - col, v - row)
+    got, known = _bilinear_depth_flat(depth, valid, row, col, u - col, v - row)
+    assert 0 < known.sum() < len(known)
+    np.testing.assert_array_equal(known, expected_known)
+    np.testing.assert_array_equal(got[known], expected[known])

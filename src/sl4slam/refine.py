@@ -25,7 +25,6 @@ integer coordinates at their centres.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
 
 import numpy as np
 
@@ -49,17 +48,33 @@ def camera_points_and_normals(depth: np.ndarray, K: np.ndarray) -> tuple[np.ndar
     return points, normals
 
 
-def _bilinear_depth(inverse: np.ndarray | Callable[[np.ndarray, np.ndarray], np.ndarray], valid: np.ndarray,
-                    row: np.ndarray, col: np.ndarray, fx: np.ndarray, fy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _bilinear_depth(inverse: np.ndarray, valid: np.ndarray, row: np.ndarray, col: np.ndarray, fx: np.ndarray,
+                    fy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Depth at ``(col + fx, row + fy)`` from the four pixels around it, interpolated in the inverse
-    depth (exact on a plane), and whether all four are valid. ``inverse``: the inverse depth ``(H, W)``,
-    or a function giving it at pixels ``(row, col)`` (for a map read at a few points only)."""
-    at = inverse if callable(inverse) else (lambda r, c: inverse[r, c])
+    depth (exact on a plane), and whether all four are valid. ``inverse``: the inverse depth ``(H, W)``."""
     known = valid[row, col] & valid[row, col + 1] & valid[row + 1, col] & valid[row + 1, col + 1]
-    top = at(row, col) * (1 - fx) + at(row, col + 1) * fx
-    bottom = at(row + 1, col) * (1 - fx) + at(row + 1, col + 1) * fx
+    top = inverse[row, col] * (1 - fx) + inverse[row, col + 1] * fx
+    bottom = inverse[row + 1, col] * (1 - fx) + inverse[row + 1, col + 1] * fx
     with np.errstate(divide="ignore", invalid="ignore"):  # pixels with an invalid corner are not known
         return 1.0 / (top * (1 - fy) + bottom * fy), known
+
+
+def _bilinear_depth_flat(depth: np.ndarray, valid: np.ndarray, row: np.ndarray, col: np.ndarray, fx: np.ndarray,
+                         fy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_bilinear_depth` from the depth ``(H, W)`` itself, read at the four pixels around each
+    point only (by flat index; the map is not inverted as a whole): the interpolated depth and
+    whether all four are ``valid`` ``(H, W)``. ``row, col`` must index pixels whose right and lower
+    neighbours exist."""
+    W = depth.shape[1]
+    depth, valid = depth.reshape(-1), valid.reshape(-1)
+    corners = row * W + col
+    corners = (corners, corners + 1, corners + W, corners + W + 1)
+    ok = [np.take(valid, at) for at in corners]
+    inverse = [1.0 / np.where(good, np.take(depth, at), 1.0).astype(np.float64) for good, at in zip(ok, corners)]
+    top = inverse[0] * (1 - fx) + inverse[1] * fx
+    bottom = inverse[2] * (1 - fx) + inverse[3] * fx
+    with np.errstate(divide="ignore", invalid="ignore"):  # pixels with an invalid corner are not known
+        return 1.0 / (top * (1 - fy) + bottom * fy), ok[0] & ok[1] & ok[2] & ok[3]
 
 
 def _pairs(inverses, K, T, valid, grids, normals, frame, other, tol):
@@ -118,7 +133,8 @@ def window_disagreement(depth: np.ndarray, K: np.ndarray, T_cam_submap: np.ndarr
     rows, cols = rows[:len(rows) // block * block], cols[:len(cols) // block * block]
     if len(rows) == 0 or len(cols) == 0:
         return None
-    grid = pixel_grid(H, W)[np.ix_(rows, cols)]
+    grid = np.stack(np.broadcast_arrays(cols[None, :].astype(np.float64), rows[:, None].astype(np.float64), 1.0),
+                    axis=-1)  # pixel_grid(H, W)[np.ix_(rows, cols)] without the whole image's grid
     keep = valid[:, rows][:, :, cols]
     sampled = depth[:, rows][:, :, cols].astype(np.float64)
     rays = [grid @ np.linalg.inv(K[s]).T for s in range(S)]
@@ -135,9 +151,7 @@ def window_disagreement(depth: np.ndarray, K: np.ndarray, T_cam_submap: np.ndarr
             inside = front & (u >= 0) & (u < W - 1) & (v >= 0) & (v < H - 1)
             col = np.where(inside, np.floor(u), 0).astype(np.int64)
             row = np.where(inside, np.floor(v), 0).astype(np.int64)
-            ok = valid[other]
-            inverse = (lambda r, c, d=depth[other], ok=ok: 1.0 / np.where(ok[r, c], d[r, c], 1.0).astype(np.float64))
-            measured, known = _bilinear_depth(inverse, ok, row, col, u - col, v - row)
+            measured, known = _bilinear_depth_flat(depth[other], valid[other], row, col, u - col, v - row)
             on = inside & known
             gap = np.where(on, z / np.where(on, measured, 1.0) - 1.0, 0.0)
             on &= np.abs(gap) <= tol

@@ -20,7 +20,7 @@ from .errors import UserError
 from .geometry import to_4x4
 from .loops import LoopEvidence, grey_for_check
 from .refine import window_disagreement
-from .submap import SubmapConfig, confidence_levels, confidence_mask, submap_points
+from .submap import SubmapConfig, confidence_mask_and_levels, submap_points
 from .types import Frame, FrameView, LoopCandidate, SubmapPrediction
 
 
@@ -158,14 +158,14 @@ class DenseSubmap:
         """Confidence masks for the window, and points for the frames that are aligned: the shared
         frames, the frames that open the next submap and the loop frames (the map is rebuilt from
         stored depth, so no other frame needs points now)."""
-        mask = confidence_mask(prediction.confidence, prediction.depth, settings.tau_conf)
+        mask, levels = confidence_mask_and_levels(prediction.confidence, prediction.depth, settings.tau_conf)
         T_cam_submap = to_4x4(prediction.T_cam_submap)
         needed = sorted({0, *range(work.first_new), *work.opening_slots(settings.overlap),
                          *range(work.last_slot + 1, len(work.frames))})
         points = submap_points(prediction, settings.use_point_head, needed)
         views = {slot: FrameView(points[k], mask[slot], prediction.K[slot], T_cam_submap[slot])
                  for k, slot in enumerate(needed)}
-        return cls(prediction, T_cam_submap, mask, confidence_levels(prediction.confidence, prediction.depth), views)
+        return cls(prediction, T_cam_submap, mask, levels, views)
 
     def submap_frames(self, work: SubmapInput, agreement: bool = False) -> SubmapFrames:
         """The window's shared frames (when it has any) and new keyframes with their extrinsics, as
@@ -175,8 +175,10 @@ class DenseSubmap:
         disagreement = None
         if agreement:
             prediction = self.prediction
-            disagreement = window_disagreement(prediction.depth[slots], prediction.K[slots], self.T_cam_submap[slots],
-                                               self.mask[slots])
+            # the leading frames as views where they are (no copy of the window's depth maps)
+            frames = slice(0, len(slots)) if slots == list(range(len(slots))) else slots
+            disagreement = window_disagreement(prediction.depth[frames], prediction.K[frames],
+                                               self.T_cam_submap[frames], self.mask[frames])
         return SubmapFrames(tuple(work.frames[slot].index for slot in slots), self.T_cam_submap[slots],
                             shared=work.first_new, disagreement=disagreement)
 

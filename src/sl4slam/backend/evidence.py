@@ -48,7 +48,8 @@ def transfer_jacobians(H: np.ndarray, X_b: np.ndarray, generators: np.ndarray) -
     """
     Y = np.concatenate([X_b, np.ones((len(X_b), 1))], axis=1) @ np.asarray(H, dtype=np.float64).T  # (n, 4)
     w = Y[:, 3:4]
-    GY = np.einsum("mij,nj->nmi", generators, Y)  # (n, dim, 4): G_m Y_k
+    dim = len(generators)
+    GY = (Y @ np.asarray(generators, dtype=np.float64).reshape(dim * 4, 4).T).reshape(len(Y), dim, 4)  # G_m Y_k
     d_pi = (GY[:, :, :3] - (Y[:, None, :3] / w[:, None]) * GY[:, :, 3:4]) / w[:, None]  # (n, dim, 3)
     return -np.swapaxes(d_pi, 1, 2)
 
@@ -78,7 +79,8 @@ def edge_information(alignment: Alignment, generators: np.ndarray, config: Backe
     variance = max(alignment.rms, 1e-12) ** 2 / 3.0  # per axis; exact fits are bounded by the clamp below
     witnesses = int(alignment.extras.get("shared_frames", 1))
     independent = min(float(alignment.support_count or len(X_b)), float(config.effective_points) * witnesses)
-    information = np.einsum("nid,nie->de", J, J) * (independent / len(X_b)) / variance
+    rows = J.reshape(-1, dim)  # (3 n, dim): one row per residual component
+    information = (rows.T @ rows) * (independent / len(X_b)) / variance
     return clamp_information(information, config.min_sigma, config.max_sigma) / inflation
 
 
