@@ -53,10 +53,17 @@ def _bilinear_depth(inverse: np.ndarray, valid: np.ndarray, row: np.ndarray, col
     """Depth at ``(col + fx, row + fy)`` from the four pixels around it, interpolated in the inverse
     depth (exact on a plane), and whether all four are valid. ``inverse``: the inverse depth ``(H, W)``."""
     known = valid[row, col] & valid[row, col + 1] & valid[row + 1, col] & valid[row + 1, col + 1]
-    top = inverse[row, col] * (1 - fx) + inverse[row, col + 1] * fx
-    bottom = inverse[row + 1, col] * (1 - fx) + inverse[row + 1, col + 1] * fx
+    corners = (inverse[row, col], inverse[row, col + 1], inverse[row + 1, col], inverse[row + 1, col + 1])
+    return _interpolated_depth(corners, fx, fy), known
+
+
+def _interpolated_depth(inverse: tuple[np.ndarray, ...], fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
+    """Depth at fractions ``(fx, fy)`` between four pixels' inverse depths ``(top left, top right,
+    bottom left, bottom right)``, interpolated in the inverse depth."""
+    top = inverse[0] * (1 - fx) + inverse[1] * fx
+    bottom = inverse[2] * (1 - fx) + inverse[3] * fx
     with np.errstate(divide="ignore", invalid="ignore"):  # pixels with an invalid corner are not known
-        return 1.0 / (top * (1 - fy) + bottom * fy), known
+        return 1.0 / (top * (1 - fy) + bottom * fy)
 
 
 def _bilinear_depth_flat(depth: np.ndarray, valid: np.ndarray, row: np.ndarray, col: np.ndarray, fx: np.ndarray,
@@ -70,11 +77,8 @@ def _bilinear_depth_flat(depth: np.ndarray, valid: np.ndarray, row: np.ndarray, 
     corners = row * W + col
     corners = (corners, corners + 1, corners + W, corners + W + 1)
     ok = [np.take(valid, at) for at in corners]
-    inverse = [1.0 / np.where(good, np.take(depth, at), 1.0).astype(np.float64) for good, at in zip(ok, corners)]
-    top = inverse[0] * (1 - fx) + inverse[1] * fx
-    bottom = inverse[2] * (1 - fx) + inverse[3] * fx
-    with np.errstate(divide="ignore", invalid="ignore"):  # pixels with an invalid corner are not known
-        return 1.0 / (top * (1 - fy) + bottom * fy), ok[0] & ok[1] & ok[2] & ok[3]
+    inverse = tuple(1.0 / np.where(good, np.take(depth, at), 1.0).astype(np.float64) for good, at in zip(ok, corners))
+    return _interpolated_depth(inverse, fx, fy), ok[0] & ok[1] & ok[2] & ok[3]
 
 
 def _pairs(inverses, K, T, valid, grids, normals, frame, other, tol):
