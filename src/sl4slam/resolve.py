@@ -23,7 +23,8 @@ that gives its reasons):
 - device: CUDA when available (only looked up when a model runs); ``cuda`` without a GPU is refused;
 - model weights: the model's released weights;
 - model precision: half precision on a CUDA GPU (bf16 where it runs, else fp16), float32 elsewhere
-  (``sl4slam.models.precision.settle_mode``; settled with the device);
+  (``sl4slam.models.precision.settle_mode``; settled with the device); bf16 asked for on a GPU
+  that does not run it becomes fp16; on a GPU a note says what was chosen and why;
 - overlap of the model and the graph work: only with ``tau_interval`` >= 1;
 - simulator: every error magnitude not set explicitly from its profile.
 """
@@ -180,7 +181,13 @@ def resolve(config: SLAMConfig, capabilities: FrontendCapabilities | None = None
     attention = _attention(settled, graph, retrieval, capabilities, notes)
     device = _device(settled, entry, retrieval) if probe_device else settled.device
     if probe_device and entry.settle_dtype is not None:
-        settled.model.dtype = entry.settle_dtype(settled.model.dtype, device)
+        from .models.precision import precision_note
+
+        requested = settled.model.dtype
+        settled.model.dtype = entry.settle_dtype(requested, device)
+        note = precision_note(requested, settled.model.dtype, device)
+        if note:
+            notes.append(note)
     settled.sim = settled.sim.resolved()
     overlap = settled.overlap and (retrieval is RetrievalKind.NONE or settled.retrieval.tau_interval >= 1)
     if settled.overlap and not overlap:

@@ -234,8 +234,9 @@ class ModelConfig(Section):
     (``owner/name`` or ``owner/name:file``); "auto": the model's released weights (VGGT-1B:
     facebook/VGGT-1B; ``sl4slam models`` lists every model's)."""
     dtype: str = setting("auto", choices=("auto", "fp32", "bf16", "fp16", "int8"), common=True)
-    """"auto" (bf16 on GPUs that support it, else fp16; fp32 on CPU), "fp32", "bf16", "fp16", or
-    "int8" (VGGT on a CPU: int8 linear layers in the aggregator; decision: docs/decisions/int8-cpu.md)."""
+    """"auto" (bf16 on GPUs that support it, else fp16; fp32 on CPU), "fp32", "bf16" (fp16 on a GPU
+    that does not run bf16; the run's notes say so), "fp16", or "int8" (VGGT on a CPU: int8 linear
+    layers in the aggregator; decision: docs/decisions/int8-cpu.md)."""
     preprocess_mode: str = setting("crop", choices=("crop", "pad"))
     """VGGT preprocessing: "crop" (width 518) or "pad" (square 518)."""
     max_memory_gb: float = setting(0.0, flag='--max-memory',
