@@ -7,6 +7,10 @@ the report gives medians over submaps 10-20 and the last ten, to show the cost d
 the map, and the memory kept per keyframe.
 
     python benchmarks/bench_pipeline.py --submaps 300
+
+With ``--fits-record PATH`` and then, in a second run with the same settings, ``--fits-replay PATH``,
+the second run hands back the first one's link fits instead of fitting (``harness/fit_memo.py``):
+its per-submap cost is the model-free work without the fits.
 """
 
 from __future__ import annotations
@@ -112,8 +116,22 @@ def main() -> None:
     parser.add_argument("--keep-running-state", action="store_true",
                         help="finish() without releasing retrieval's database and iSAM2 first (as the figures "
                              "before 2026-11-29 did), to measure what the release saves")
+    parser.add_argument("--fits-record", metavar="PATH",
+                        help="keep every link fit's result in PATH, for a second run with --fits-replay")
+    parser.add_argument("--fits-replay", metavar="PATH",
+                        help="hand back the fits recorded in PATH instead of fitting (the same settings and "
+                             "--submaps as the recording run): the model-free cost without the fits "
+                             "(harness/fit_memo.py)")
     parser.add_argument("--out", default=str(result_file("pipeline")))
     args = parser.parse_args()
+    if args.fits_record and args.fits_replay:
+        parser.error("--fits-record and --fits-replay exclude each other")
+    memo = None
+    if args.fits_record or args.fits_replay:
+        from harness.fit_memo import FitMemo
+
+        memo = FitMemo("record" if args.fits_record else "replay", args.fits_record or args.fits_replay)
+        memo.install()
     from sl4slam.io import open_source
 
     config = simulated_config({
@@ -256,6 +274,11 @@ def main() -> None:
                   "after a garbage collection and `malloc_trim`):", "", "| part | MiB | bytes per keyframe |", "|---|---|---|"]
         lines += [f"| {name} | {mib:.0f} | {mib * 2**20 / keyframes:.0f} |" for name, mib in memory_parts(pipeline, source)]
         lines.append("")
+    if memo is not None:
+        memo.save()
+        lines += [f"Link fits {'recorded in' if memo.mode == 'record' else 'replayed from'} `{memo.path.name}`"
+                  + (f": {memo.hits} handed back, {memo.misses} not recorded (fitted)." if memo.mode == "replay"
+                     else f": {len(memo.fits)} fits."), ""]
     write_report(args.out, lines)
     if args.plot:
         plot(args.plot, totals, submap_trace, [m for _, m in rss_trace])
