@@ -10,8 +10,9 @@ of the ``select`` link, the loop checks, the graph, retrieval, the store) and no
 so its per-submap cost is what the model-free work would be if the fits cost nothing.
 
 A replayed fit costs the digest of a sample of its inputs and the copy of its result (together
-about 0.1 ms) (a fit that failed raises its error again); :attr:`FitMemo.misses` counts fits that were not recorded (fitted then, as in
-the recording run), which a deterministic replay leaves at zero.
+about 0.1 ms); a fit that failed raises its error again. :attr:`FitMemo.misses` counts fits that
+were not recorded (fitted then, as in the recording run), which a deterministic replay leaves at
+zero.
 """
 
 from __future__ import annotations
