@@ -29,6 +29,12 @@ def fit_memo(monkeypatch):
     return fit_memo
 
 
+@pytest.fixture(scope="module")
+def world(tmp_path_factory) -> Path:
+    return write_synthetic_sequence(tmp_path_factory.mktemp("world") / "synthetic", num_frames=120, width=160,
+                                    height=120, seed=0)
+
+
 def _run(world: Path):
     config = SLAMConfig(frontend="simulated")
     config.sim.profile = "vggt"
@@ -37,8 +43,7 @@ def _run(world: Path):
     return SLAMPipeline.from_config(config).run(open_source(str(world)), progress=False)
 
 
-def test_replayed_fits_make_the_same_map_and_fit_nothing(fit_memo, tmp_path: Path, monkeypatch) -> None:
-    world = write_synthetic_sequence(tmp_path / "world", num_frames=200, width=160, height=120, seed=0)
+def test_replayed_fits_make_the_same_map_and_fit_nothing(fit_memo, world: Path, tmp_path: Path, monkeypatch) -> None:
     originals = {cls: cls.__dict__["fit"] for cls in (SL4Aligner, CalibrationAligner)}
     with fit_memo.FitMemo("record", tmp_path / "fits.pkl").installed() as recorder:
         recorded = _run(world)
@@ -58,12 +63,11 @@ def test_replayed_fits_make_the_same_map_and_fit_nothing(fit_memo, tmp_path: Pat
                                                                         for e in recorded.edges]
 
 
-def test_a_fit_that_was_not_recorded_is_fitted_and_counted(fit_memo, tmp_path: Path) -> None:
+def test_a_fit_that_was_not_recorded_is_fitted_and_counted(fit_memo, world: Path, tmp_path: Path) -> None:
     import pickle
 
     with open(tmp_path / "empty.pkl", "wb") as handle:
         pickle.dump({}, handle)
-    world = write_synthetic_sequence(tmp_path / "world", num_frames=60, width=96, height=72, seed=0)
     with fit_memo.FitMemo("replay", tmp_path / "empty.pkl").installed() as replayer:
         _run(world)
     assert replayer.hits == 0 and replayer.misses > 0
