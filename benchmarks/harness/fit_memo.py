@@ -28,6 +28,7 @@ from typing import Iterator
 import numpy as np
 
 from sl4slam.alignment import aligner as aligners
+from sl4slam.atomic import atomic_path
 
 WRAPPED = (aligners.SL4Aligner, aligners.CalibrationAligner)
 """The aligner classes whose own ``fit`` is recorded or replayed."""
@@ -92,9 +93,9 @@ class FitMemo:
             self.uninstall()
 
     def save(self) -> None:
-        """Write the recorded fits (record mode)."""
+        """Write the recorded fits (record mode), atomically."""
         if self.mode == "record":
-            with open(self.path, "wb") as handle:
+            with atomic_path(self.path) as partial, open(partial, "wb") as handle:
                 pickle.dump(self.fits, handle, protocol=pickle.HIGHEST_PROTOCOL)
 
     def _wrapped(self, model: str, original):
